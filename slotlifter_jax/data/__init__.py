@@ -1,0 +1,1 @@
+"""Data: the procedural scene generator, readers for the paper's data sets, the batch pipeline."""

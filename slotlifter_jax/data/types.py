@@ -1,0 +1,42 @@
+"""The in-memory scene structure every reader returns.
+
+One `Scene` holds all N views of a scene in the *normalised scene frame* (SPEC §3.1): positions
+already multiplied by the data set's scene scale (1/7 for the uORF-style sets), cameras OpenCV
+cam2world, intrinsics in pixels of the stored image size.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Optional
+
+import numpy as np
+
+
+class DataError(ValueError):
+  """Bad input on disk; the message always names the offending file and what is wrong."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+  name: str
+  images: np.ndarray  # [N, H, W, 3] float32 in [0, 1]
+  cam_to_world: np.ndarray  # [N, 4, 4] float32, OpenCV convention, normalised scene frame
+  intrinsics: np.ndarray  # [N, 3, 3] float32, pixel units of `images`
+  source_indices: tuple[int, ...]  # which views are source views (uORF sets: (0,))
+  masks: Optional[np.ndarray] = None  # [N, H, W] int32, 0 = background, None when the set has none
+  mask_views: Optional[np.ndarray] = None  # [N] bool, which views have a ground-truth mask
+  depth: Optional[np.ndarray] = None  # [N, H, W] float32 camera-z depth in the normalised frame
+  objects: Optional[list] = None  # per-object metadata from dataset.json when present
+
+  @property
+  def num_views(self) -> int:
+    return self.images.shape[0]
+
+  @property
+  def image_size(self) -> tuple[int, int]:
+    return self.images.shape[1], self.images.shape[2]
+
+  @property
+  def novel_indices(self) -> tuple[int, ...]:
+    return tuple(i for i in range(self.num_views) if i not in self.source_indices)
