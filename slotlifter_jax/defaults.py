@@ -1,0 +1,89 @@
+"""The base configuration every data-set config in `configs/` starts from.
+
+It holds the paper's settings for the synthetic sets (SPEC §1–2). A data-set config overrides the few
+fields that differ (K, near/far, feature width, fine pass, …) and derives its variants (`smoke`,
+`quick`) by overriding a few more, so no setting is written twice.
+"""
+
+import ml_collections
+
+
+def base_config() -> ml_collections.ConfigDict:
+  c = ml_collections.ConfigDict()
+  c.seed = 0
+
+  # ---- model (SPEC §1) ----
+  m = c.model = ml_collections.ConfigDict()
+  m.feature_dim = 64  # D: 64 synthetic sets, 32 DTU/ScanNet
+  m.encoder_stem_width = 64
+  m.encoder_widths = (64, 128, 256)  # layer1..layer3 channels
+  m.encoder_blocks = (3, 4, 6)  # BasicBlocks per layer: ResNet-34 layout
+  m.num_slots = 8  # K (the empty slot is extra)
+  m.slot_dim = 256
+  m.slot_iters = 3
+  m.slot_mlp_dim = 1024
+  m.slot_eps = 1.0
+  m.slot_drop_path = 0.2  # stochastic depth on the slot MLP residual
+  m.point_dim = 64  # width of the allocation transformer
+  m.num_blocks = 4
+  m.num_heads = 4
+  m.self_attn_dim = 16  # per-ray self-attention projection width
+  m.ffn_dim = 256
+  m.max_dropout = 0.2  # residual dropout rates linspace(0, max_dropout, num_blocks)
+  m.num_freqs = 10  # positional encoding frequencies 2^0..2^9
+  m.colour_hidden = 64
+  m.colour_layers = 4  # hidden Linear layers of the colour MLP (64→64→64→64→64→3)
+  m.colour_range = "unit"  # "unit": tanh/2+1/2 in [0,1]; "signed": tanh in [-1,1] (DTU, ScanNet)
+  m.density_scale = 25.0  # α = 1 − exp(−σ·δ·density_scale)
+  m.locality_box = 0.64  # |coordinate| beyond which only slots 0 and 1 may take a point
+  m.remat_scan = False  # nn.scan + nn.remat over the decoder blocks: less memory, more time
+
+  # ---- rendering (SPEC §1.5) ----
+  r = c.render = ml_collections.ConfigDict()
+  r.near = 6.0 / 7.0
+  r.far = 20.0 / 7.0
+  r.num_samples = 96
+  r.num_fine_samples = 0  # 0: no fine pass (synthetic sets); 64 for DTU/ScanNet
+  r.chunk = 4096  # rays per chunk when rendering a full view
+
+  # ---- data (SPEC §3) ----
+  d = c.data = ml_collections.ConfigDict()
+  d.format = "uorf"  # uorf | uocf | dtu | scannet
+  d.root = ""  # empty: the embedded default set, generated once into the cache folder
+  d.family = "clevr"  # embedded generator family when root is empty
+  d.subset = "clevr_567"  # uORF folder prefix: <root>/<subset>_{train,val,test}
+  d.scene_scale = 1.0 / 7.0  # uORF "nss_scale"
+  d.image_size = 128  # generated / loaded resolution (reader resizes when smaller than on disk)
+  d.num_source_views = 1  # V
+  d.views_per_scene = 4
+  d.num_train_scenes = 1000
+  d.num_val_scenes = 100
+  d.num_test_scenes = 100
+  d.novel_ray_prob = 0.75  # probability that a scene's rays come from novel views only
+  d.has_masks = True
+
+  # ---- training (SPEC §2) ----
+  t = c.train = ml_collections.ConfigDict()
+  t.num_steps = 250_000
+  t.batch_scenes = 4
+  t.rays_per_scene = 1024
+  t.base_lr = 5e-5
+  t.lr_floor = 0.02
+  t.warmup_steps = 10_000
+  t.decay_steps = 50_000  # half-life of the exponential decay
+  t.b1 = 0.9
+  t.b2 = 0.99
+  t.weight_decay = 1e-3
+  t.grad_clip = 0.5
+  t.mask_anneal_steps = 30_000  # masking ratio 0.99 → 0
+  t.mask_max = 0.99
+  t.noise_anneal_steps = 30_000  # slot init noise σ 1 → 0
+  t.locality_steps = 50_000  # locality constraint on for the first N steps (0: never)
+  t.max_nonfinite_in_row = 20
+  t.log_every = 50
+  t.eval_every = 5000
+  t.eval_scenes = 8  # validation scenes used at each evaluation interval
+  t.checkpoint_every = 2000
+  t.keep_checkpoints = 3
+  t.grad_accum_chunks = 1  # split the scenes of a batch into chunks inside the step (memory)
+  return c
