@@ -1,0 +1,60 @@
+"""Every schedule of SPEC §2 as a pure function of the step `t` (a traced int or a Python int).
+
+Keeping them pure means the jitted train step computes them from `state.step`, a resumed run
+continues them exactly, and the training metrics can report them.
+"""
+
+import jax.numpy as jnp
+
+
+def backbone_lr_factor(t, *, floor: float, warmup_steps: int, decay_steps: int):
+  """Encoder, slot attention, allocation transformers: floor + (1−floor)·min(1, t/warm)·0.5^(1.5·t/decay)."""
+  t = jnp.asarray(t, jnp.float32)
+  warm = jnp.minimum(1.0, t / max(warmup_steps, 1))
+  return floor + (1.0 - floor) * warm * 0.5 ** (1.5 * t / decay_steps)
+
+
+def head_lr_factor(t, *, floor: float, decay_steps: int):
+  """Colour MLP, lifting Linear, positional Linear: floor + (1−floor)·0.5^(t/decay), no warm-up."""
+  t = jnp.asarray(t, jnp.float32)
+  return floor + (1.0 - floor) * 0.5 ** (t / decay_steps)
+
+
+def _cosine_to_zero(t, steps: int):
+  """1 at t = 0, cosine down to 0 at t = steps, 0 afterwards."""
+  t = jnp.asarray(t, jnp.float32)
+  if steps <= 0:
+    return jnp.zeros_like(t)
+  return jnp.where(t < steps, 0.5 * (jnp.cos(jnp.pi * t / steps) + 1.0), 0.0)
+
+
+def keep_ratio(t, *, mask_max: float, anneal_steps: int):
+  """Fraction of rays that keep their lifted features (SPEC §1.3).
+
+  keep(t) = 1 − mask_max·(cos(π t/T)+1)/2 for t < T, else 1: with mask_max = 0.99 the masking ratio
+  anneals 0.99 → 0, i.e. 1 − (0.495 cos(π t/30 000) + 0.495).
+  """
+  return 1.0 - mask_max * _cosine_to_zero(t, anneal_steps)
+
+
+def slot_noise_sigma(t, *, anneal_steps: int):
+  """σ of the slot initialisation noise (SPEC §1.2), cosine-annealed 1 → 0."""
+  return _cosine_to_zero(t, anneal_steps)
+
+
+def locality_on(t, *, steps: int):
+  """The locality constraint (SPEC §1.4) holds for the first `steps` steps."""
+  return jnp.asarray(t) < steps
+
+
+def all_schedules(t, train_config) -> dict:
+  """The schedule values for step t, as reported in the training metrics."""
+  c = train_config
+  return dict(
+      lr_backbone=c.base_lr * backbone_lr_factor(
+          t, floor=c.lr_floor, warmup_steps=c.warmup_steps, decay_steps=c.decay_steps),
+      lr_head=c.base_lr * head_lr_factor(t, floor=c.lr_floor, decay_steps=c.decay_steps),
+      keep_ratio=keep_ratio(t, mask_max=c.mask_max, anneal_steps=c.mask_anneal_steps),
+      slot_noise_sigma=slot_noise_sigma(t, anneal_steps=c.noise_anneal_steps),
+      locality=locality_on(t, steps=c.locality_steps),
+  )
