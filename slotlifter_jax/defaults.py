@@ -87,3 +87,75 @@ def base_config() -> ml_collections.ConfigDict:
   t.keep_checkpoints = 3
   t.grad_accum_chunks = 1  # split the scenes of a batch into chunks inside the step (memory)
   return c
+
+
+def apply_variant(c: ml_collections.ConfigDict, variant: str) -> ml_collections.ConfigDict:
+  """Derives a variant from a data-set config by overriding a few fields (never by copying)."""
+  if variant in ("", "paper"):
+    return c
+  if variant == "quick":
+    return quick(c)
+  if variant == "smoke":
+    return smoke(c)
+  raise ValueError(f"unknown variant {variant!r}: use '', 'paper', 'quick' or 'smoke'")
+
+
+def quick(c):
+  """A CPU-sized run of the same method: 64×64, a narrower ResNet-18-style encoder, fewer rays and
+  samples, and every schedule compressed to the shorter run."""
+  c.data.image_size = 64
+  c.data.num_train_scenes = 1000
+  c.data.num_val_scenes = 100
+  c.data.num_test_scenes = 100
+  c.model.encoder_blocks = (2, 2, 2)
+  c.model.encoder_widths = (32, 64, 128)
+  c.model.encoder_stem_width = 32
+  c.model.feature_dim = 32
+  c.render.num_samples = 32
+  c.train.num_steps = 3000
+  c.train.batch_scenes = 2
+  c.train.rays_per_scene = 256
+  c.train.base_lr = 2e-4
+  c.train.warmup_steps = 200
+  c.train.decay_steps = 2000
+  c.train.mask_anneal_steps = 1500
+  c.train.noise_anneal_steps = 1500
+  c.train.locality_steps = 2000
+  c.train.eval_every = 500
+  c.train.checkpoint_every = 250
+  return c
+
+
+def smoke(c):
+  """About a minute on a 2-core CPU: proves that the whole command works, learns nothing."""
+  c.data.image_size = 32
+  c.data.num_train_scenes = 4
+  c.data.num_val_scenes = 2
+  c.data.num_test_scenes = 2
+  c.model.encoder_blocks = (1, 1, 1)
+  c.model.encoder_widths = (8, 16, 16)
+  c.model.encoder_stem_width = 8
+  c.model.feature_dim = 8
+  c.model.num_slots = 4
+  c.model.slot_dim = 32
+  c.model.slot_mlp_dim = 64
+  c.model.point_dim = 16
+  c.model.num_blocks = 2
+  c.model.ffn_dim = 32
+  c.model.self_attn_dim = 8
+  c.model.colour_hidden = 16
+  c.render.num_samples = 8
+  c.render.chunk = 512
+  c.train.num_steps = 6
+  c.train.batch_scenes = 2
+  c.train.rays_per_scene = 32
+  c.train.warmup_steps = 2
+  c.train.decay_steps = 10
+  c.train.mask_anneal_steps = 3
+  c.train.noise_anneal_steps = 3
+  c.train.locality_steps = 3
+  c.train.log_every = 2
+  c.train.eval_every = 3
+  c.train.eval_scenes = 1
+  c.train.checkpoint_every = 3
+  return c

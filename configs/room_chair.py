@@ -1,0 +1,16 @@
+"""Room-Chair (uORF folder format), or the embedded procedural `room` set when data.root is empty.
+
+Paper settings (SPEC §1–2): 128×128, 1 source view, K = 5, D = 64, 96 samples, locality 50k steps.
+Run: python -m slotlifter_jax.main --config=configs/room_chair.py[:quick|:smoke] --workdir=DIR
+Real data: --config.data.root=/path/to/uorf_data (holding room_chair_{train,test}).
+"""
+
+from slotlifter_jax import defaults
+
+
+def get_config(variant: str = ""):
+  c = defaults.base_config()
+  c.data.family = "room"
+  c.data.subset = "room_chair"
+  c.model.num_slots = 5
+  return defaults.apply_variant(c, variant)
