@@ -1,0 +1,120 @@
+"""Checkpoints of a run's work directory, and the config saved beside them.
+
+Layout of a work directory:
+  DIR/config.json            the config the run was started with (compared on resume and eval)
+  DIR/checkpoints/latest/N   the last few train states (orbax, written atomically)
+  DIR/checkpoints/best/N     the best state by validation score (NV-ARI, or PSNR without masks)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any
+
+import jax
+import ml_collections
+import orbax.checkpoint as ocp
+
+# Fields whose change makes a checkpoint unusable: the parameter shapes depend on them.
+ARCHITECTURE_FIELDS = ("model",)
+
+
+class CheckpointMismatchError(ValueError):
+  """A checkpoint or saved config does not fit the requested config."""
+
+
+class Checkpoints:
+  def __init__(self, workdir: str, *, keep: int = 3):
+    root = os.path.abspath(os.path.join(workdir, "checkpoints"))
+    self.latest = ocp.CheckpointManager(
+        os.path.join(root, "latest"),
+        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
+    self.best = ocp.CheckpointManager(
+        os.path.join(root, "best"),
+        options=ocp.CheckpointManagerOptions(
+            max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", create=True))
+
+  def latest_step(self) -> int | None:
+    return self.latest.latest_step()
+
+  def save(self, state, *, force: bool = False) -> None:
+    step = int(jax.device_get(state.step))
+    if step in self.latest.all_steps():
+      return
+    self.latest.save(step, args=ocp.args.StandardSave(state), force=force)
+
+  def save_best(self, state, score: float) -> None:
+    step = int(jax.device_get(state.step))
+    if step in self.best.all_steps():
+      return
+    self.best.save(step, args=ocp.args.StandardSave(state), metrics={"score": float(score)},
+                   force=True)
+
+  def restore(self, abstract_state, *, step: int | None = None, which: str = "latest"):
+    manager = self.latest if which == "latest" else self.best
+    step = manager.latest_step() if step is None and which == "latest" else step
+    if step is None and which == "best":
+      step = manager.best_step()
+    if step is None:
+      raise FileNotFoundError(f"no {which} checkpoint under {manager.directory}")
+    try:
+      return manager.restore(step, args=ocp.args.StandardRestore(abstract_state))
+    except (ValueError, KeyError, TypeError) as e:
+      raise CheckpointMismatchError(
+          f"checkpoint {manager.directory}/{step} does not match the model built from the config "
+          f"(different K, feature width or layout?): {e}") from e
+
+  def wait(self) -> None:
+    self.latest.wait_until_finished()
+    self.best.wait_until_finished()
+
+  def close(self) -> None:
+    self.latest.close()
+    self.best.close()
+
+
+def config_path(workdir: str) -> str:
+  return os.path.join(workdir, "config.json")
+
+
+def save_config(config: ml_collections.ConfigDict, workdir: str) -> None:
+  """Writes DIR/config.json atomically (temp file + rename)."""
+  os.makedirs(workdir, exist_ok=True)
+  path = config_path(workdir)
+  tmp = path + ".tmp"
+  with open(tmp, "w") as f:
+    f.write(config.to_json_best_effort(indent=2, sort_keys=True))
+  os.replace(tmp, path)
+
+
+def load_saved_config(workdir: str) -> dict | None:
+  path = config_path(workdir)
+  if not os.path.exists(path):
+    return None
+  try:
+    with open(path) as f:
+      return json.load(f)
+  except json.JSONDecodeError as e:
+    raise CheckpointMismatchError(f"{path}: not valid JSON ({e})") from e
+
+
+def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, where: str) -> None:
+  """Raises when the architecture fields of `config` differ from the saved ones, naming them."""
+  if saved is None:
+    return
+  current = json.loads(config.to_json_best_effort())
+  diffs = []
+  for section in ARCHITECTURE_FIELDS:
+    a, b = saved.get(section, {}), current.get(section, {})
+    for k in sorted(set(a) | set(b)):
+      if _normalise(a.get(k)) != _normalise(b.get(k)):
+        diffs.append(f"{section}.{k}: saved {a.get(k)!r}, requested {b.get(k)!r}")
+  if diffs:
+    raise CheckpointMismatchError(
+        f"{where}: the run in this directory was made with another model config:\n  "
+        + "\n  ".join(diffs))
+
+
+def _normalise(v: Any):
+  return list(v) if isinstance(v, tuple) else v
