@@ -1,0 +1,48 @@
+"""The embedded default data set: generated once into a cache folder when no data root is given.
+
+The cache key holds every argument of the generator, so a config that asks for another size or
+seed gets its own folder, and a finished folder is never regenerated or modified. Generation writes
+each split to a temporary folder and renames it into place, so an interrupted run leaves nothing
+that looks complete.
+"""
+
+from __future__ import annotations
+
+import os
+
+from absl import logging
+
+SUBSETS = {"clevr": "clevr_567", "room": "room_chair"}
+
+
+def cache_root() -> str:
+  """$SLOTLIFTER_DATA_CACHE, else $XDG_CACHE_HOME/slotlifter_jax, else ~/.cache/slotlifter_jax."""
+  if os.environ.get("SLOTLIFTER_DATA_CACHE"):
+    return os.environ["SLOTLIFTER_DATA_CACHE"]
+  base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+  return os.path.join(base, "slotlifter_jax")
+
+
+def dataset_dir(data_config, *, seed: int) -> str:
+  from slotlifter_jax.data import generator  # heavy imports only when generating
+  d = data_config
+  name = (f"{d.family}-v{generator.GENERATOR_VERSION}-{d.image_size}px-{d.views_per_scene}v-"
+          f"{d.num_train_scenes}-{d.num_val_scenes}-{d.num_test_scenes}-s{seed}")
+  return os.path.join(cache_root(), name)
+
+
+def ensure_dataset(data_config, *, seed: int = 0) -> str:
+  """Returns the root of the embedded set described by `data_config`, generating it if absent."""
+  from slotlifter_jax.data import generator
+  d = data_config
+  root = dataset_dir(d, seed=seed)
+  subset = SUBSETS[d.family]
+  splits = {"train": d.num_train_scenes, "val": d.num_val_scenes, "test": d.num_test_scenes}
+  if all(os.path.exists(os.path.join(root, f"{subset}_{s}", "dataset.json")) for s in splits):
+    return root
+  logging.info("embedded %s set not found: generating it into %s (once)", d.family, root)
+  generator.generate_dataset(
+      root, family=d.family, num_train=d.num_train_scenes, num_val=d.num_val_scenes,
+      num_test=d.num_test_scenes, views=d.views_per_scene, image_size=d.image_size, seed=seed,
+      progress=True)
+  return root
