@@ -1,0 +1,184 @@
+"""Training: one step end to end, the non-finite guard, exact resume, and multi-device agreement."""
+
+import importlib.util
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from slotlifter_jax import checkpoints as ckpt_lib
+from slotlifter_jax import model as model_lib
+from slotlifter_jax import train
+from slotlifter_jax import train_step as step_lib
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def load_config(name="clevr", variant="smoke"):
+  spec = importlib.util.spec_from_file_location(name, os.path.join(REPO, "configs", f"{name}.py"))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  return module.get_config(variant)
+
+
+def fake_batch(config, *, seed=0, num_scenes=None):
+  """A batch of the pipeline's shapes whose rays hit the region the source camera sees."""
+  rng = np.random.default_rng(seed)
+  b = num_scenes or config.train.batch_scenes
+  v, r, s = config.data.num_source_views, config.train.rays_per_scene, config.data.image_size
+  cam = np.eye(4, dtype=np.float32)
+  cam[:3, 3] = [0.0, 0.0, -1.8]  # looking down +z at the origin
+  intr = np.array([[s, 0, (s - 1) / 2], [0, s, (s - 1) / 2], [0, 0, 1]], np.float32)
+  dirs = rng.normal(size=(b, r, 3)).astype(np.float32) * [0.2, 0.2, 0.0] + [0, 0, 1]
+  return dict(
+      source_images=rng.uniform(size=(b, v, s, s, 3)).astype(np.float32),
+      source_cam_to_world=np.broadcast_to(cam, (b, v, 4, 4)).copy(),
+      source_intrinsics=np.broadcast_to(intr, (b, v, 3, 3)).copy(),
+      ray_origins=np.broadcast_to(cam[:3, 3], (b, r, 3)).astype(np.float32).copy(),
+      ray_directions=(dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)).astype(np.float32),
+      target_rgb=rng.uniform(size=(b, r, 3)).astype(np.float32),
+  )
+
+
+def test_param_groups_split_head_from_backbone():
+  config = load_config()
+  model = model_lib.build_model(config)
+  state = step_lib.init_state(model, config, fake_batch(config), jax.random.key(0))
+  groups = jax.tree.leaves(step_lib.param_groups(state.params))
+  assert "head" in groups and "backbone" in groups
+  # The head (colour MLP, lifting and positional Linear) is a small fraction of the model.
+  sizes = {g: 0 for g in ("head", "backbone")}
+  for g, x in zip(groups, jax.tree.leaves(state.params)):
+    sizes[g] += x.size
+  assert sizes["head"] < sizes["backbone"]
+
+
+def test_step_learns_and_nan_batch_is_skipped():
+  config = load_config()
+  model = model_lib.build_model(config)
+  batch = fake_batch(config)
+  state = step_lib.init_state(model, config, batch, jax.random.key(0))
+  step = step_lib.make_train_step(model, config, key=jax.random.key(1))
+  before = jax.tree.map(np.array, state.params)
+  state, m = step(state, batch)
+  assert bool(m["finite"]) and np.isfinite(float(m["loss"]))
+  assert int(state.step) == 1
+  changed = jax.tree.leaves(jax.tree.map(lambda a, b: np.any(a != b), before, state.params))
+  assert any(changed)
+
+  bad = dict(batch, target_rgb=np.full_like(batch["target_rgb"], np.nan))
+  good_params = jax.tree.map(np.array, state.params)
+  good_opt = jax.tree.map(np.array, state.opt_state)
+  for i in range(2):
+    state, m = step(state, bad)
+    assert not bool(m["finite"])
+    assert int(m["nonfinite_in_row"]) == i + 1
+  jax.tree.map(np.testing.assert_array_equal, good_params, jax.tree.map(np.array, state.params))
+  jax.tree.map(np.testing.assert_array_equal, good_opt, jax.tree.map(np.array, state.opt_state))
+  assert int(state.step) == 3 and int(state.nonfinite_total) == 2
+  state, m = step(state, batch)
+  assert bool(m["finite"]) and int(state.nonfinite_in_row) == 0
+
+
+def test_gradient_accumulation_matches_full_batch():
+  config = load_config()
+  config.train.batch_scenes = 4
+  model = model_lib.build_model(config)
+  batch = fake_batch(config)
+  # Dropout/noise/masking keys differ per chunk, so compare with every random part switched off.
+  config.model.max_dropout = 0.0
+  config.model.slot_drop_path = 0.0
+  config.train.mask_max = 0.0
+  config.train.noise_anneal_steps = 0
+  model = model_lib.build_model(config)
+  state = step_lib.init_state(model, config, batch, jax.random.key(0))
+  outs = []
+  for chunks in (1, 2):
+    config.train.grad_accum_chunks = chunks
+    step = step_lib.make_train_step(model, config, key=jax.random.key(1))
+    s = jax.tree.map(jnp.array, state)  # fresh copy: the step donates its input
+    outs.append(step(s, batch))
+  (s1, m1), (s2, m2) = outs
+  np.testing.assert_allclose(m1["grad_norm"], m2["grad_norm"], rtol=2e-4)
+  np.testing.assert_allclose(m1["loss"], m2["loss"], rtol=1e-5)
+
+
+def _final_params(workdir, config):
+  model = model_lib.build_model(config)
+  abstract = step_lib.init_state(model, config, fake_batch(config), jax.random.key(0))
+  manager = ckpt_lib.Checkpoints(workdir)
+  state = manager.restore(abstract)
+  manager.close()
+  return int(state.step), state.params
+
+
+@pytest.mark.slow
+def test_resume_after_interrupt_is_exact(tmp_path, monkeypatch):
+  config = load_config()
+  config.train.num_steps = 6
+  train.train_and_evaluate(config, str(tmp_path / "straight"))
+
+  # Interrupted run: SIGINT arrives during step 3; the loop checkpoints and leaves, then resumes.
+  real_make = step_lib.make_train_step
+  def make_interrupting(*args, **kwargs):
+    inner = real_make(*args, **kwargs)
+    calls = {"n": 0}
+    def step(state, batch):
+      calls["n"] += 1
+      if calls["n"] == 3:
+        os.kill(os.getpid(), signal.SIGINT)
+      return inner(state, batch)
+    return step
+  monkeypatch.setattr(step_lib, "make_train_step", make_interrupting)
+  train.train_and_evaluate(load_config_with(config), str(tmp_path / "resumed"))
+  assert _final_params(str(tmp_path / "resumed"), config)[0] == 3
+  monkeypatch.setattr(step_lib, "make_train_step", real_make)
+  train.train_and_evaluate(load_config_with(config), str(tmp_path / "resumed"))
+
+  step_a, params_a = _final_params(str(tmp_path / "straight"), config)
+  step_b, params_b = _final_params(str(tmp_path / "resumed"), config)
+  assert step_a == step_b == 6
+  jax.tree.map(np.testing.assert_array_equal, params_a, params_b)
+
+
+def load_config_with(config):
+  return config.copy_and_resolve_references()
+
+
+@pytest.mark.slow
+def test_four_devices_match_one_device():
+  script = textwrap.dedent(f"""
+    import os, sys
+    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    sys.path.insert(0, {os.path.join(REPO, "tests")!r})
+    import jax, numpy as np
+    from test_train import load_config, fake_batch
+    from slotlifter_jax import model as model_lib, train_step as step_lib
+    assert len(jax.devices()) == 4
+    config = load_config()
+    config.train.batch_scenes = 4
+    model = model_lib.build_model(config)
+    batches = [fake_batch(config, seed=i) for i in range(3)]
+    losses = {{}}
+    for n in (1, 4):
+      mesh = step_lib.make_mesh(jax.devices()[:n])
+      state = step_lib.init_state(model, config, batches[0], jax.random.key(0))
+      state = jax.device_put(state, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+      step = step_lib.make_train_step(model, config, key=jax.random.key(1), mesh=mesh)
+      out = []
+      for b in batches:
+        state, m = step(state, step_lib.shard_batch(b, mesh))
+        out.append(float(m["loss"]))
+      losses[n] = out
+    print("losses", losses)
+    np.testing.assert_allclose(losses[1], losses[4], rtol=1e-4)
+  """)
+  result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=600)
+  assert result.returncode == 0, result.stdout + result.stderr
