@@ -1,0 +1,300 @@
+"""Allocation transformer, point-slot mapping, slot density and colour MLP (SPEC §1.4).
+
+Shapes: B scenes, R rays per scene, S samples per ray, K slots (K+1 with the empty slot s_∅ at
+index 0), Ds slot width (256), C point width (64).
+
+Point features F_p [B, R, S, C] attend to S' = [s_∅, s_1 … s_K] [B, K+1, Ds] through 4 pre-LN
+blocks; one block (the official `TransformerDecoderBlock`):
+
+  x = CrossAttn(LN(h), S')                   4 heads, projection width C
+  x = ReLU(Conv1d_k3_same(x))                along the S samples of each ray
+  h = h + Dropout(x)
+  h = h + Dropout(FFN(x))                    FFN = LN → C→4C ReLU → C, on the branch x (official)
+  h = h + SelfAttn(LN(h))                    along the ray, projection width 16, 4 heads
+
+then a final LayerNorm. The mapping turns the result into point-slot weights
+W = softmax(q(h)·k(S')ᵀ/√C) over K+1, the slot feature F_s = Linear(W·S'), and the slot-based
+density σ = exp(s_σ)·Σ_{k≥1} W_k·ReLU(A_k). The colour MLP maps F_s + E_p to RGB.
+
+Initialisers follow the official code's `linear` helper: xavier-uniform kernels and zero biases;
+the attention output projections and the FFN's last layer use xavier-uniform with gain
+(3·num_blocks)^-½ (variance scaled by 1/12 for 4 blocks); the FFN's first layer and the colour
+MLP's hidden layers are kaiming-uniform (he_uniform); the Conv1d keeps PyTorch's default init.
+
+`remat_scan=True` runs the blocks as one `nn.scan` over stacked parameters with `nn.remat` on the
+body (../shared/PERF_NOTES.md: the only layout in which rematerialisation lowers memory on
+XLA:CPU). Dropout is written by hand with a traced rate so the per-block rates can be scanned, and
+the dropout keys are split once at the top so both layouts compute the same function with the same
+randomness.
+"""
+
+from __future__ import annotations
+
+import math
+
+import flax.linen as nn
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from slotlifter_jax.encoder import torch_default_bias_init, torch_default_kernel_init
+
+# PyTorch's LayerNorm default, kept to match the official model.
+LAYER_NORM_EPS = 1e-5
+# The locality constraint sets logits to this instead of −∞: softmax still gives exactly 0 weight
+# (exp underflows) but a fully masked row, or a gradient through the masked entries, cannot
+# produce NaN the way −∞ − (−∞) does.
+MASKED_LOGIT = -1e9
+# LeakyReLU slope of the colour MLP (PyTorch's default).
+LEAKY_SLOPE = 0.01
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure functions.
+
+
+def dropout(x: jax.Array, *, rate, key: jax.Array) -> jax.Array:
+  """Inverted dropout with a possibly traced rate: keep with probability 1 − rate, rescale.
+
+  rate = 0 keeps everything (a Bernoulli draw with p = 1 is always true), so a scanned block with
+  rate 0 is the identity, as PyTorch's nn.Identity for the first block.
+  """
+  keep_prob = 1.0 - rate
+  mask = jax.random.bernoulli(key, keep_prob, x.shape)
+  return jnp.where(mask, x / keep_prob, jnp.zeros_like(x))
+
+
+def conv1d_taps(x: jax.Array) -> jax.Array:
+  """[..., S, C] → [..., S, 3C]: [x_{s−1}, x_s, x_{s+1}] with zeros beyond the ends.
+
+  A Dense(3C → C) on this is exactly Conv1d(C, C, kernel 3, padding 1) along S (PyTorch's tap k
+  multiplies x_{s+k−1}), and avoids lax.conv, whose weight gradient is pathological inside
+  nn.scan on XLA:CPU (../shared/PERF_NOTES.md).
+  """
+  zero = jnp.zeros_like(x[..., :1, :])
+  prev = jnp.concatenate([zero, x[..., :-1, :]], axis=-2)  # [..., S, C]
+  nxt = jnp.concatenate([x[..., 1:, :], zero], axis=-2)
+  return jnp.concatenate([prev, x, nxt], axis=-1)  # [..., S, 3C]
+
+
+def dot_product_attention(*, q: jax.Array, k: jax.Array, v: jax.Array) -> jax.Array:
+  """Multi-head scaled dot-product attention.
+
+  q [..., T, H, dq], k [..., L, H, dq], v [..., L, H, dv] with equal leading dims →
+  [..., T, H, dv]; softmax over the L keys, scale dq^-½.
+  """
+  logits = jnp.einsum("...thd,...lhd->...htl", q, k) / math.sqrt(q.shape[-1])  # [..., H, T, L]
+  attn = jax.nn.softmax(logits, axis=-1)
+  return jnp.einsum("...htl,...lhd->...thd", attn, v)  # [..., T, H, dv]
+
+
+def locality_mask(*, logits: jax.Array, points: jax.Array, box: float, enabled) -> jax.Array:
+  """The locality constraint (SPEC §1.4): outside the box only s_∅ and slot 1 may take a point.
+
+  logits [..., K+1], points [..., 3] in the normalised scene frame, `enabled` a (traced) bool.
+  Where enabled and any |coordinate| > box, logits of slot indices ≥ 2 become MASKED_LOGIT.
+  """
+  outside = jnp.any(jnp.abs(points) > box, axis=-1, keepdims=True)  # [..., 1]
+  maskable = jnp.arange(logits.shape[-1]) >= 2  # [K+1]
+  masked = jnp.logical_and(jnp.logical_and(enabled, outside), maskable)  # [..., K+1]
+  return jnp.where(masked, jnp.asarray(MASKED_LOGIT, logits.dtype), logits)
+
+
+def point_slot_weights(logits: jax.Array) -> jax.Array:
+  """W = softmax over the K+1 slots (empty slot included) of the mapping logits [..., K+1]."""
+  return jax.nn.softmax(logits, axis=-1)
+
+
+def slot_density(*, logits: jax.Array, weights: jax.Array, log_scale: jax.Array) -> jax.Array:
+  """σ = exp(s_σ)·Σ_{k=1..K} W_k·ReLU(A_k) ≥ 0 [...]; the empty slot (index 0) adds nothing."""
+  per_slot = weights[..., 1:] * jax.nn.relu(logits[..., 1:])  # [..., K]
+  return jnp.exp(log_scale) * jnp.sum(per_slot, axis=-1)
+
+
+def colour_activation(raw: jax.Array, *, mode: str) -> jax.Array:
+  """'unit': tanh(o)/2 + 1/2 in [0, 1] (synthetic sets); 'signed': tanh(o) in [−1, 1] (DTU)."""
+  if mode == "unit":
+    return 0.5 * jnp.tanh(raw) + 0.5
+  if mode == "signed":
+    return jnp.tanh(raw)
+  raise ValueError(f"colour_range must be 'unit' or 'signed', got {mode!r}")
+
+
+def dropout_rates(num_blocks: int, max_rate: float) -> np.ndarray:
+  """Per-block residual dropout rates linspace(0, max_rate, num_blocks) (official rule)."""
+  return np.linspace(0.0, max_rate, num_blocks, dtype=np.float32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Modules.
+
+
+def _xavier(gain: float = 1.0):
+  return nn.initializers.variance_scaling(gain * gain, "fan_avg", "uniform")
+
+
+class MultiHeadAttention(nn.Module):
+  """Official `MultiHeadAttention`: biased q, k, v projections to `proj_dim`, `num_heads` heads,
+  output projection to `out_dim` initialised with gain `out_gain`."""
+  proj_dim: int
+  out_dim: int
+  num_heads: int
+  out_gain: float = 1.0
+
+  @nn.compact
+  def __call__(self, queries: jax.Array, keys_values: jax.Array) -> jax.Array:
+    """queries [..., T, Cq], keys_values [..., L, Ckv] (same leading dims) → [..., T, out_dim]."""
+    h, dh = self.num_heads, self.proj_dim // self.num_heads
+    dense = lambda name: nn.Dense(self.proj_dim, kernel_init=_xavier(), name=name)
+    q = dense("query")(queries).reshape(queries.shape[:-1] + (h, dh))  # [..., T, H, dh]
+    k = dense("key")(keys_values).reshape(keys_values.shape[:-1] + (h, dh))  # [..., L, H, dh]
+    v = dense("value")(keys_values).reshape(keys_values.shape[:-1] + (h, dh))
+    out = dot_product_attention(q=q, k=k, v=v)  # [..., T, H, dh]
+    out = out.reshape(out.shape[:-2] + (self.proj_dim,))
+    return nn.Dense(self.out_dim, kernel_init=_xavier(self.out_gain), name="out")(out)
+
+
+class AllocationBlock(nn.Module):
+  """One pre-LN allocation block on h [B, R, S, C] (see the module docstring).
+
+  Called as (h, (rate, key), slots) → (h, None) so the same class runs in a loop or under nn.scan;
+  `rate` is the block's residual dropout rate (traced under scan), `key` its dropout key (unused
+  unless `train`).
+  """
+  width: int = 64
+  num_heads: int = 4
+  self_attn_dim: int = 16
+  ffn_dim: int = 256
+  out_gain: float = 1.0
+  train: bool = False
+
+  @nn.compact
+  def __call__(self, h: jax.Array, rate_and_key, slots: jax.Array):
+    rate, key = rate_and_key
+    b, r, s, c = h.shape
+    ln = lambda name: nn.LayerNorm(epsilon=LAYER_NORM_EPS, name=name)
+
+    # Cross-attention from every point to S' (keys/values shared by all points of a scene).
+    x = ln("cross_norm")(h).reshape(b, r * s, c)  # [B, R·S, C]
+    x = MultiHeadAttention(self.width, self.width, self.num_heads, self.out_gain,
+                           name="cross_attn")(x, slots)
+    x = x.reshape(b, r, s, c)  # [B, R, S, C]
+    # Conv1d(k=3, 'same') along the ray, written as one Dense over shifted copies.
+    fan_in = 3 * c
+    x = nn.relu(nn.Dense(c, kernel_init=torch_default_kernel_init(),
+                         bias_init=torch_default_bias_init(fan_in), name="conv")(conv1d_taps(x)))
+    # The FFN takes the branch x, not h (official code).
+    y = ln("ffn_norm")(x)
+    y = nn.relu(nn.Dense(self.ffn_dim, kernel_init=nn.initializers.he_uniform(),
+                         name="ffn_in")(y))
+    y = nn.Dense(c, kernel_init=_xavier(self.out_gain), name="ffn_out")(y)
+    if self.train:
+      key_x, key_y = jax.random.split(key)
+      x = dropout(x, rate=rate, key=key_x)
+      y = dropout(y, rate=rate, key=key_y)
+    h = h + x + y
+    # Self-attention among the S samples of each ray.
+    z = ln("self_norm")(h)
+    h = h + MultiHeadAttention(self.self_attn_dim, self.width, self.num_heads, self.out_gain,
+                               name="self_attn")(z, z)
+    return h, None
+
+
+class AllocationTransformer(nn.Module):
+  """num_blocks AllocationBlocks then a final LayerNorm: [B, R, S, C] × S' → [B, R, S, C]."""
+  width: int = 64
+  num_blocks: int = 4
+  num_heads: int = 4
+  self_attn_dim: int = 16
+  ffn_dim: int = 256
+  max_dropout: float = 0.2
+  remat_scan: bool = False
+
+  @nn.compact
+  def __call__(self, h: jax.Array, slots: jax.Array, *, train: bool) -> jax.Array:
+    n = self.num_blocks
+    rates = dropout_rates(n, self.max_dropout)
+    # One key per block, drawn once here so the loop and scan layouts use the same randomness.
+    keys = jax.random.split(self.make_rng("dropout") if train else jax.random.key(0), n)
+    block_kwargs = dict(width=self.width, num_heads=self.num_heads,
+                        self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim,
+                        out_gain=(3.0 * n) ** -0.5, train=train)
+    if self.remat_scan:
+      blocks = nn.scan(
+          nn.remat(AllocationBlock, prevent_cse=False),
+          variable_axes={"params": 0}, split_rngs={"params": True},
+          in_axes=(0, nn.broadcast), length=n)(**block_kwargs, name="blocks")
+      h, _ = blocks(h, (jnp.asarray(rates), keys), slots)
+    else:
+      for i in range(n):
+        h, _ = AllocationBlock(**block_kwargs, name=f"block_{i}")(h, (float(rates[i]), keys[i]),
+                                                                  slots)
+    return nn.LayerNorm(epsilon=LAYER_NORM_EPS, name="final_norm")(h)
+
+
+@flax.struct.dataclass
+class Allocation:
+  features: jax.Array  # [B, R, S, C] F_s = Linear(W·S')
+  weights: jax.Array  # [B, R, S, K+1] point-slot weights W (index 0 = empty slot)
+  logits: jax.Array  # [B, R, S, K+1] mapping logits A after the locality mask
+  density: jax.Array  # [B, R, S] slot-based density σ ≥ 0
+
+
+def _empty_slot_init(key, shape, dtype=jnp.float32):
+  """xavier_uniform_ as PyTorch applies it to the official [1, 1, Ds] parameter (fans Ds, Ds)."""
+  dim = shape[-1]
+  bound = math.sqrt(6.0 / (2 * dim))
+  return jax.random.uniform(key, shape, dtype, -bound, bound)
+
+
+class SlotDecoder(nn.Module):
+  """Allocation transformer + point-slot mapping + slot density (official `JointDecoder`)."""
+  width: int = 64
+  num_blocks: int = 4
+  num_heads: int = 4
+  self_attn_dim: int = 16
+  ffn_dim: int = 256
+  max_dropout: float = 0.2
+  remat_scan: bool = False
+  locality_box: float = 0.64
+
+  @nn.compact
+  def __call__(self, point_features: jax.Array, slots: jax.Array, points: jax.Array, *,
+               locality, train: bool) -> Allocation:
+    """point_features F_p [B, R, S, C], slots [B, K, Ds], points [B, R, S, 3]; `locality` a
+    (traced) bool scalar switching the locality constraint."""
+    b, _, ds = slots.shape
+    empty = self.param("empty_slot", _empty_slot_init, (ds,))
+    slots_all = jnp.concatenate(
+        [jnp.broadcast_to(empty, (b, 1, ds)), slots], axis=1)  # [B, K+1, Ds]: S', no LayerNorm
+    h = AllocationTransformer(
+        width=self.width, num_blocks=self.num_blocks, num_heads=self.num_heads,
+        self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim, max_dropout=self.max_dropout,
+        remat_scan=self.remat_scan, name="transformer")(point_features, slots_all, train=train)
+
+    q = nn.Dense(self.width, kernel_init=_xavier(), name="map_query")(h)  # [B, R, S, C]
+    k = nn.Dense(self.width, kernel_init=_xavier(), name="map_key")(slots_all)  # [B, K+1, C]
+    logits = jnp.einsum("brsc,bkc->brsk", q, k) / math.sqrt(self.width)  # [B, R, S, K+1]
+    logits = locality_mask(logits=logits, points=points, box=self.locality_box, enabled=locality)
+    weights = point_slot_weights(logits)
+    mixed = jnp.einsum("brsk,bkd->brsd", weights, slots_all)  # [B, R, S, Ds]: W·S'
+    features = nn.Dense(self.width, kernel_init=_xavier(), name="map_out")(mixed)
+    log_scale = self.param("log_density_scale", nn.initializers.zeros, ())
+    density = slot_density(logits=logits, weights=weights, log_scale=log_scale)
+    return Allocation(features=features, weights=weights, logits=logits, density=density)
+
+
+class ColourMLP(nn.Module):
+  """c = act(MLP(F_s + E_p)): `num_layers` hidden layers of `hidden` with LeakyReLU(0.01), → 3."""
+  hidden: int = 64
+  num_layers: int = 4
+  colour_range: str = "unit"
+
+  @nn.compact
+  def __call__(self, x: jax.Array) -> jax.Array:  # [..., C] → [..., 3]
+    for i in range(self.num_layers):
+      x = nn.Dense(self.hidden, kernel_init=nn.initializers.he_uniform(), name=f"hidden_{i}")(x)
+      x = nn.leaky_relu(x, negative_slope=LEAKY_SLOPE)
+    raw = nn.Dense(3, kernel_init=_xavier(), name="out")(x)
+    return colour_activation(raw, mode=self.colour_range)
