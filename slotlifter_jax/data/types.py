@@ -3,6 +3,14 @@
 One `Scene` holds all N views of a scene in the *normalised scene frame* (SPEC §3.1): positions
 already multiplied by the data set's scene scale (1/7 for the uORF-style sets), cameras OpenCV
 cam2world, intrinsics in pixels of the stored image size.
+
+Two kinds of scene share the structure:
+- fixed sources (uORF/uOCF sets and our generated sets): `source_indices` are the model's input
+  views and every view is a target (`target_indices` None);
+- pooled sources (DTU, ScanNet training scenes): `source_indices` is empty, `target_indices` lists
+  the views that may be targets and `source_pool` the views from which each target's sources are
+  chosen, the nearest ones by `cameras.nearest_sources`. `pipeline.per_target_scenes` turns such a
+  scene into fixed-source scenes (sources + one target) for evaluation.
 """
 
 from __future__ import annotations
@@ -27,7 +35,10 @@ class Scene:
   masks: Optional[np.ndarray] = None  # [N, H, W] int32, 0 = background, None when the set has none
   mask_views: Optional[np.ndarray] = None  # [N] bool, which views have a ground-truth mask
   depth: Optional[np.ndarray] = None  # [N, H, W] float32 camera-z depth in the normalised frame
-  objects: Optional[list] = None  # per-object metadata from dataset.json when present
+  objects: Optional[list] = None  # per-object metadata from dataset.json (positions in world units)
+  target_indices: Optional[tuple[int, ...]] = None  # views that may be targets; None: all views
+  source_pool: Optional[tuple[int, ...]] = None  # pooled sources (DTU/ScanNet); None: fixed sources
+  view_names: Optional[tuple[str, ...]] = None  # the file stem of each view, for messages
 
   @property
   def num_views(self) -> int:
@@ -39,4 +50,5 @@ class Scene:
 
   @property
   def novel_indices(self) -> tuple[int, ...]:
-    return tuple(i for i in range(self.num_views) if i not in self.source_indices)
+    targets = range(self.num_views) if self.target_indices is None else self.target_indices
+    return tuple(i for i in targets if i not in self.source_indices)

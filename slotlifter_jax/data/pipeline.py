@@ -1,0 +1,283 @@
+"""The training batch pipeline (SPEC §2): fixed-shape NumPy batches, reproducible from (seed, step).
+
+Vocabulary: B scenes (or target views) per batch, V source views, R rays per scene, H×W image size.
+
+A batch is a dict of NumPy arrays:
+  source_images        [B, V, H, W, 3] float32 in [0, 1]
+  source_cam_to_world  [B, V, 4, 4]    float32, OpenCV, normalised scene frame
+  source_intrinsics    [B, V, 3, 3]    float32, pixels
+  ray_origins          [B, R, 3]       float32
+  ray_directions       [B, R, 3]       float32, unit length
+  target_rgb           [B, R, 3]       float32 in [0, 1]
+  scene_index          [B]             int32, index into the sampler's scene list
+
+Fixed-source scenes (uORF-style sets): scenes are drawn at random (without repetition within a batch
+when there are enough); per scene, with probability `novel_ray_prob` the R rays are random pixels of
+the novel views only, otherwise of all views (sources included); pixels never repeat within a scene.
+Pooled-source scenes (DTU, ScanNet): per batch element a scene and one of its target views are
+drawn, the sources are the V views of its pool nearest to the target (`cameras.nearest_sources`), and the
+R rays are distinct random pixels of that target view.
+
+Every random choice of step t comes from `np.random.default_rng([seed, t])`, so batch t is the same
+in a resumed run, whatever came before. `prefetch` builds batches on a background thread.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import queue
+import threading
+from typing import Iterable, Iterator, Optional, Sequence
+
+import numpy as np
+
+from slotlifter_jax.data import cameras
+from slotlifter_jax.data.types import DataError
+from slotlifter_jax.data.types import Scene
+
+BATCH_KEYS = ("source_images", "source_cam_to_world", "source_intrinsics", "ray_origins",
+              "ray_directions", "target_rgb", "scene_index")
+
+
+def sources_for_target(scene: Scene, *, target_idx: int, num_source_views: int) -> tuple[int, ...]:
+  """The source views used to render `target_idx`: fixed sources, or the pool's nearest views."""
+  if scene.source_pool is None:
+    return tuple(scene.source_indices)
+  return cameras.nearest_sources(cam_to_world=scene.cam_to_world, target_idx=target_idx,
+                                 pool=scene.source_pool, n=num_source_views)
+
+
+def per_target_scenes(scene: Scene, *, num_source_views: int) -> list[Scene]:
+  """Evaluation form of a pooled-source scene: one fixed-source Scene per target.
+
+  Each holds its V nearest sources followed by the target (views [sources…, target]), so code that
+  renders "every view of a scene with its source_indices" evaluates one target with its own sources.
+  A fixed-source scene is returned unchanged (as a one-element list).
+  """
+  if scene.source_pool is None:
+    return [scene]
+  out = []
+  for target in scene.target_indices:
+    views = list(sources_for_target(scene, target_idx=target, num_source_views=num_source_views))
+    views.append(target)
+    idx = np.array(views)
+    names = scene.view_names
+    out.append(dataclasses.replace(
+        scene,
+        name=f"{scene.name}/{names[target] if names else target}",
+        images=scene.images[idx],
+        cam_to_world=scene.cam_to_world[idx],
+        intrinsics=scene.intrinsics[idx],
+        source_indices=tuple(range(num_source_views)),
+        masks=None if scene.masks is None else scene.masks[idx],
+        mask_views=None if scene.mask_views is None else scene.mask_views[idx],
+        depth=None if scene.depth is None else scene.depth[idx],
+        target_indices=None,
+        source_pool=None,
+        view_names=None if names is None else tuple(names[i] for i in views),
+    ))
+  return out
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchDraw:
+  """The random choices of one step, before any pixel is gathered."""
+  scene_index: np.ndarray  # [B] int32
+  source_views: np.ndarray  # [B, V] int32, view indices within each scene
+  ray_views: np.ndarray  # [B, R] int32
+  ray_rows: np.ndarray  # [B, R] int32
+  ray_cols: np.ndarray  # [B, R] int32
+  novel_only: np.ndarray  # [B] bool: the rays were restricted to non-source views
+
+
+class BatchSampler:
+  """Draws the step-t batch of a scene list; a pure function of (scenes, settings, seed, t)."""
+
+  def __init__(self, scenes: Sequence[Scene], *, batch_scenes: int, rays_per_scene: int,
+               num_source_views: int, novel_ray_prob: float, seed: int):
+    if not scenes:
+      raise DataError("BatchSampler: no scenes to draw from")
+    self.scenes = list(scenes)
+    self.batch_scenes = int(batch_scenes)
+    self.rays_per_scene = int(rays_per_scene)
+    self.num_source_views = int(num_source_views)
+    self.novel_ray_prob = float(novel_ray_prob)
+    self.seed = int(seed)
+    self._sources: dict[tuple[int, int], tuple[int, ...]] = {}  # (scene, target) → sources
+    self._check()
+
+  def _check(self) -> None:
+    size = self.scenes[0].image_size
+    pixels = size[0] * size[1]
+    for scene in self.scenes:
+      if scene.image_size != size:
+        raise DataError(f"scene {scene.name}: images are {scene.image_size} but scene "
+                        f"{self.scenes[0].name}'s are {size}; a batch needs one size")
+      if scene.source_pool is None:
+        if len(scene.source_indices) != self.num_source_views:
+          raise DataError(f"scene {scene.name}: {len(scene.source_indices)} source views, "
+                          f"data.num_source_views is {self.num_source_views}")
+        novel = len(scene.novel_indices) or scene.num_views
+        if novel * pixels < self.rays_per_scene:
+          raise DataError(f"scene {scene.name}: {novel} novel views of {size} hold fewer than "
+                          f"{self.rays_per_scene} pixels")
+      elif pixels < self.rays_per_scene:
+        raise DataError(f"scene {scene.name}: a {size} target view holds fewer than "
+                        f"{self.rays_per_scene} pixels")
+
+  def _scene_sources(self, scene_idx: int, target: int) -> tuple[int, ...]:
+    key = (scene_idx, target)
+    if key not in self._sources:
+      self._sources[key] = sources_for_target(self.scenes[scene_idx], target_idx=target,
+                                              num_source_views=self.num_source_views)
+    return self._sources[key]
+
+  def draw(self, step: int) -> BatchDraw:
+    """The random choices of step `step` (scenes, targets, sources, pixels)."""
+    rng = np.random.default_rng([self.seed, int(step)])
+    n, b, r = len(self.scenes), self.batch_scenes, self.rays_per_scene
+    scene_index = rng.choice(n, size=b, replace=n < b)
+    height, width = self.scenes[0].image_size
+    pixels = height * width
+    sources, views, flat, novel_only = [], [], [], []
+    for s in scene_index:
+      scene = self.scenes[s]
+      if scene.source_pool is None:
+        novel = scene.novel_indices
+        only_novel = bool(novel) and rng.random() < self.novel_ray_prob
+        pool = np.array(novel if only_novel else range(scene.num_views))  # candidate views
+        pick = rng.choice(len(pool) * pixels, size=r, replace=False)  # distinct (view, pixel)
+        views.append(pool[pick // pixels])
+        sources.append(scene.source_indices)
+        novel_only.append(only_novel)
+      else:
+        target = int(scene.target_indices[rng.integers(len(scene.target_indices))])
+        pick = rng.choice(pixels, size=r, replace=False)
+        views.append(np.full(r, target))
+        sources.append(self._scene_sources(int(s), target))
+        novel_only.append(True)
+      flat.append(pick % pixels)
+    flat = np.stack(flat)  # [B, R]
+    return BatchDraw(
+        scene_index=scene_index.astype(np.int32),
+        source_views=np.array(sources, dtype=np.int32).reshape(b, self.num_source_views),
+        ray_views=np.stack(views).astype(np.int32),
+        ray_rows=(flat // width).astype(np.int32),
+        ray_cols=(flat % width).astype(np.int32),
+        novel_only=np.array(novel_only, dtype=bool))
+
+  def gather(self, draw: BatchDraw) -> dict[str, np.ndarray]:
+    """The batch arrays (module docstring) for a draw."""
+    out = {k: [] for k in BATCH_KEYS[:-1]}
+    for b, s in enumerate(draw.scene_index):
+      scene = self.scenes[s]
+      src = draw.source_views[b]  # [V]
+      out["source_images"].append(scene.images[src])
+      out["source_cam_to_world"].append(scene.cam_to_world[src])
+      out["source_intrinsics"].append(scene.intrinsics[src])
+      view = draw.ray_views[b]  # [R]
+      rays = cameras.pixel_rays(cam_to_world=scene.cam_to_world[view],
+                                intrinsics=scene.intrinsics[view],
+                                cols=draw.ray_cols[b].astype(np.float64),
+                                rows=draw.ray_rows[b].astype(np.float64))
+      out["ray_origins"].append(rays.origins)
+      out["ray_directions"].append(rays.directions)
+      out["target_rgb"].append(scene.images[view, draw.ray_rows[b], draw.ray_cols[b]])  # [R, 3]
+    batch = {k: np.stack(v).astype(np.float32) for k, v in out.items()}
+    batch["scene_index"] = draw.scene_index.astype(np.int32)
+    return batch
+
+  def batch(self, step: int) -> dict[str, np.ndarray]:
+    """The batch of step `step`."""
+    return self.gather(self.draw(step))
+
+
+class _End:
+  pass
+
+
+@dataclasses.dataclass(frozen=True)
+class _Failure:
+  error: BaseException
+
+
+class Prefetcher:
+  """Iterates `iterator` on a daemon thread, `size` items ahead; `close()` stops it cleanly.
+
+  An exception raised by the iterator is re-raised by `next()` in the consumer.
+  """
+
+  _POLL_SECONDS = 0.05  # how often a blocked producer checks whether it should stop
+
+  def __init__(self, iterator: Iterable, size: int = 2):
+    if size < 1:
+      raise ValueError(f"prefetch size must be ≥ 1, got {size}")
+    self._queue: queue.Queue = queue.Queue(maxsize=size)
+    self._stop = threading.Event()
+    self._done = False
+    self._thread = threading.Thread(target=self._produce, args=(iter(iterator),), daemon=True,
+                                    name="batch-prefetch")
+    self._thread.start()
+
+  def _put(self, item) -> bool:
+    while not self._stop.is_set():
+      try:
+        self._queue.put(item, timeout=self._POLL_SECONDS)
+        return True
+      except queue.Full:
+        continue
+    return False
+
+  def _produce(self, iterator: Iterator) -> None:
+    try:
+      for item in iterator:
+        if not self._put(item):
+          return
+    except BaseException as e:  # handed to the consumer, which re-raises it
+      self._put(_Failure(e))
+      return
+    self._put(_End())
+
+  def __iter__(self) -> "Prefetcher":
+    return self
+
+  def __next__(self):
+    if self._done:
+      raise StopIteration
+    item = self._queue.get()
+    if isinstance(item, _End):
+      self._done = True
+      raise StopIteration
+    if isinstance(item, _Failure):
+      self._done = True
+      raise item.error
+    return item
+
+  def close(self, timeout: Optional[float] = 5.0) -> None:
+    """Stops the producer (it finishes at most the item it is building) and joins it."""
+    self._stop.set()
+    self._done = True
+    while True:  # unblock a producer waiting on a full queue
+      try:
+        self._queue.get_nowait()
+      except queue.Empty:
+        break
+    self._thread.join(timeout)
+
+  @property
+  def alive(self) -> bool:
+    return self._thread.is_alive()
+
+  def __enter__(self) -> "Prefetcher":
+    return self
+
+  def __exit__(self, *exc) -> None:
+    self.close()
+
+  def __del__(self):
+    self._stop.set()
+
+
+def prefetch(iterator: Iterable, size: int = 2) -> Prefetcher:
+  """Runs `iterator` `size` items ahead on a background thread (so the jitted step never waits)."""
+  return Prefetcher(iterator, size=size)

@@ -1,0 +1,228 @@
+"""The batch pipeline (SPEC §2): shapes, determinism from (seed, step), ray geometry, the 75 % rule,
+nearest-source selection and the prefetch thread."""
+
+import threading
+import time
+
+import chex
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import data_fixtures as fx
+from slotlifter_jax.data import cameras
+from slotlifter_jax.data import pipeline
+from slotlifter_jax.data.types import DataError
+from slotlifter_jax.data.types import Scene
+
+H, W = 5, 7
+
+
+def make_scene(name, *, views=4, seed=0, pooled=False, size=(H, W)):
+  rng = np.random.default_rng(seed)
+  poses = np.stack([fx.orbit_pose(rng.uniform(0, 360), radius=rng.uniform(10, 14),
+                                  elevation_deg=rng.uniform(20, 60)) for _ in range(views)])
+  poses[:, :3, 3] /= 7.0
+  k = np.array([[1.09375 * size[1], 0.2, (size[1] - 1) / 2],
+                [0, 1.458333 * size[0], (size[0] - 1) / 2], [0, 0, 1]])
+  common = dict(name=name, images=rng.uniform(size=(views,) + size + (3,)).astype(np.float32),
+                cam_to_world=poses.astype(np.float32),
+                intrinsics=np.broadcast_to(k, (views, 3, 3)).astype(np.float32))
+  if pooled:
+    return Scene(**common, source_indices=(), target_indices=tuple(range(views)),
+                 source_pool=tuple(range(views)))
+  return Scene(**common, source_indices=(0,))
+
+
+def sampler_for(scenes, *, b=2, r=13, v=1, p=0.75, seed=3):
+  return pipeline.BatchSampler(scenes, batch_scenes=b, rays_per_scene=r, num_source_views=v,
+                               novel_ray_prob=p, seed=seed)
+
+
+def view_of_ray(scene, origin):
+  """The view whose camera centre is the ray origin (each view has its own centre)."""
+  d = np.linalg.norm(scene.cam_to_world[:, :3, 3] - origin, axis=-1)
+  assert d.min() < 1e-6
+  return int(np.argmin(d))
+
+
+def test_shapes_and_dtypes():
+  scenes = [make_scene(f"s{i}", seed=i) for i in range(3)]
+  batch = sampler_for(scenes, b=2, r=13).batch(0)
+  assert set(batch) == set(pipeline.BATCH_KEYS)
+  chex.assert_shape(batch["source_images"], (2, 1, H, W, 3))
+  chex.assert_shape(batch["source_cam_to_world"], (2, 1, 4, 4))
+  chex.assert_shape(batch["source_intrinsics"], (2, 1, 3, 3))
+  chex.assert_shape([batch["ray_origins"], batch["ray_directions"], batch["target_rgb"]],
+                    (2, 13, 3))
+  chex.assert_shape(batch["scene_index"], (2,))
+  for k, v in batch.items():
+    assert v.dtype == (np.int32 if k == "scene_index" else np.float32), k
+  np.testing.assert_allclose(np.linalg.norm(batch["ray_directions"], axis=-1), 1.0, rtol=1e-6)
+  assert len(set(batch["scene_index"].tolist())) == 2  # no scene twice when there are enough
+  for b, s in enumerate(batch["scene_index"]):
+    np.testing.assert_array_equal(batch["source_images"][b, 0], scenes[s].images[0])
+
+
+def test_reproducible_from_seed_and_step_alone():
+  scenes = [make_scene(f"s{i}", seed=i) for i in range(5)]
+  a, b = sampler_for(scenes), sampler_for(scenes)
+  for _ in range(3):
+    a.batch(1)  # history must not matter
+  for step in (0, 7, 123456):
+    x, y = a.batch(step), b.batch(step)
+    for k in x:
+      np.testing.assert_array_equal(x[k], y[k])
+  assert not np.array_equal(a.batch(7)["ray_directions"], a.batch(8)["ray_directions"])
+  assert not np.array_equal(a.batch(7)["ray_directions"],
+                            sampler_for(scenes, seed=4).batch(7)["ray_directions"])
+
+
+def test_rays_pass_through_their_pixel_and_carry_its_colour():
+  scenes = [make_scene(f"s{i}", seed=i) for i in range(3)]
+  sampler = sampler_for(scenes, b=3, r=29)
+  for step in range(4):
+    batch = sampler.batch(step)
+    for b, s in enumerate(batch["scene_index"]):
+      scene = scenes[s]
+      for origin, direction, rgb in zip(batch["ray_origins"][b], batch["ray_directions"][b],
+                                        batch["target_rgb"][b]):
+        view = view_of_ray(scene, origin)
+        point = origin.astype(np.float64) + 2.3 * direction  # any point along the ray
+        cam = np.linalg.inv(scene.cam_to_world[view].astype(np.float64)) @ np.append(point, 1)
+        u, v = (scene.intrinsics[view].astype(np.float64) @ cam[:3])[:2] / cam[2]
+        col, row = int(round(u)), int(round(v))
+        assert abs(u - col) < 1e-4 and abs(v - row) < 1e-4  # pixel centres at integers
+        np.testing.assert_array_equal(rgb, scene.images[view, row, col])
+
+
+def test_no_pixel_twice_within_a_scene():
+  scenes = [make_scene("s0", views=2)]
+  sampler = sampler_for(scenes, b=1, r=H * W - 1, p=0.0)  # nearly every pixel of both views
+  for step in range(5):
+    batch = sampler.batch(step)
+    rays = np.concatenate([batch["ray_origins"][0], batch["ray_directions"][0]], axis=-1)
+    assert len(np.unique(np.round(rays, 5), axis=0)) == H * W - 1
+  novel_only = sampler_for(scenes, b=1, r=H * W, p=1.0).batch(0)  # every pixel of view 1
+  rays = np.concatenate([novel_only["ray_origins"][0], novel_only["ray_directions"][0]], axis=-1)
+  assert len(np.unique(np.round(rays, 5), axis=0)) == H * W
+
+
+def test_novel_views_only_in_three_quarters_of_draws():
+  scenes = [make_scene(f"s{i}", seed=i) for i in range(4)]
+  sampler = sampler_for(scenes, b=4, r=31)  # (3/4)^31 ≈ 1e-4: all-novel by chance is negligible
+  novel_only, from_source = [], []
+  for step in range(150):
+    batch = sampler.batch(step)
+    for b, s in enumerate(batch["scene_index"]):
+      views = np.array([view_of_ray(scenes[s], o) for o in batch["ray_origins"][b]])
+      novel_only.append(np.all(views != 0))
+      from_source.append(np.mean(views == 0))
+  frac = np.mean(novel_only)
+  sigma = np.sqrt(0.75 * 0.25 / len(novel_only))
+  assert abs(frac - 0.75) < 4 * sigma, frac
+  # In the other draws, rays come from all 4 views: about a quarter from the source view.
+  mixed = np.array(from_source)[~np.array(novel_only)]
+  assert abs(mixed.mean() - 0.25) < 0.05
+
+
+def _brute_force_nearest(poses, target, pool, n):
+  dist = {}
+  for i in pool:
+    if i == target:
+      continue
+    angle = Rotation.from_matrix(poses[target][:3, :3].T @ poses[i][:3, :3]).magnitude()
+    dist[i] = 0.5 * angle + 0.5 * np.linalg.norm(poses[i][:3, 3] - poses[target][:3, 3])
+  return sorted(dist, key=dist.get)[:n]
+
+
+def test_nearest_sources_against_brute_force():
+  poses = make_scene("s", views=11, seed=5).cam_to_world.astype(np.float64)
+  pool = (0, 2, 3, 5, 6, 7, 9, 10)
+  for target in range(11):
+    got = cameras.nearest_sources(cam_to_world=poses, target_idx=target, pool=pool, n=3)
+    assert list(got) == _brute_force_nearest(poses, target, pool, 3)
+  with pytest.raises(ValueError):
+    cameras.nearest_sources(cam_to_world=poses, target_idx=0, pool=(0, 1), n=2)
+
+
+def test_pooled_scenes_take_targets_and_nearest_sources():
+  scenes = [make_scene(f"p{i}", views=9, seed=i, pooled=True) for i in range(2)]
+  sampler = sampler_for(scenes, b=3, r=17, v=3)
+  for step in range(6):
+    batch = sampler.batch(step)
+    chex.assert_shape(batch["source_images"], (3, 3, H, W, 3))
+    for b, s in enumerate(batch["scene_index"]):
+      scene = scenes[s]
+      views = {view_of_ray(scene, o) for o in batch["ray_origins"][b]}
+      assert len(views) == 1  # one target view per batch element
+      (target,) = views
+      want = _brute_force_nearest(scene.cam_to_world.astype(np.float64), target, range(9), 3)
+      np.testing.assert_array_equal(batch["source_cam_to_world"][b], scene.cam_to_world[want])
+      np.testing.assert_array_equal(batch["source_images"][b], scene.images[want])
+
+
+def test_per_target_scenes():
+  scene = make_scene("scan", views=10, seed=2, pooled=True)
+  scene = Scene(**{**scene.__dict__, "target_indices": (0, 8),
+                   "source_pool": (1, 2, 3, 4, 5, 6, 7, 9),
+                   "view_names": tuple(f"{i:06d}" for i in range(10))})
+  out = pipeline.per_target_scenes(scene, num_source_views=3)
+  assert [s.name for s in out] == ["scan/000000", "scan/000008"]
+  for s, target in zip(out, (0, 8)):
+    want = _brute_force_nearest(scene.cam_to_world.astype(np.float64), target,
+                                scene.source_pool, 3)
+    np.testing.assert_array_equal(s.images, scene.images[want + [target]])
+    assert s.source_indices == (0, 1, 2) and s.novel_indices == (3,) and s.source_pool is None
+  fixed = make_scene("fixed")
+  assert pipeline.per_target_scenes(fixed, num_source_views=1) == [fixed]
+
+
+def test_sampler_rejects_inconsistent_scenes():
+  with pytest.raises(DataError, match="s1"):
+    sampler_for([make_scene("s0"), make_scene("s1", size=(H + 2, W))])
+  with pytest.raises(DataError, match="pixels"):
+    sampler_for([make_scene("s0", views=2)], r=H * W + 1, p=1.0)
+
+
+def test_prefetch_preserves_order_and_matches_direct_batches():
+  scenes = [make_scene(f"s{i}", seed=i) for i in range(3)]
+  sampler = sampler_for(scenes)
+  with pipeline.prefetch((sampler.batch(s) for s in range(5, 11)), size=2) as it:
+    got = list(it)
+  assert len(got) == 6
+  for step, batch in zip(range(5, 11), got):
+    for k, v in sampler.batch(step).items():
+      np.testing.assert_array_equal(batch[k], v)
+
+
+def test_prefetch_stops_cleanly_and_reraises():
+  produced = []
+
+  def endless():
+    i = 0
+    while True:
+      produced.append(i)
+      yield i
+      i += 1
+
+  it = pipeline.prefetch(endless(), size=2)
+  assert [next(it) for _ in range(3)] == [0, 1, 2]
+  it.close()
+  assert not it.alive
+  n = len(produced)
+  time.sleep(0.2)
+  assert len(produced) == n  # nothing more is built after close
+  with pytest.raises(StopIteration):
+    next(it)
+
+  def failing():
+    yield 1
+    raise RuntimeError("broken batch")
+
+  it = pipeline.prefetch(failing())
+  assert next(it) == 1
+  with pytest.raises(RuntimeError, match="broken batch"):
+    next(it)
+  it.close()
+  assert not any(t.name == "batch-prefetch" and t.is_alive() for t in threading.enumerate())
