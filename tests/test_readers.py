@@ -220,17 +220,20 @@ def test_resize_keeps_a_projected_point_on_its_scaled_pixel(tmp_path):
       np.testing.assert_allclose(projected, [col, row], atol=1e-4)
 
 
-def test_area_weights_and_nearest_indices_against_brute_force():
-  for n_in, n_out in ((12, 5), (9, 3), (7, 7), (10, 4)):
-    w = images.area_weights(n_in, n_out)
-    fine = 1000  # integrate the indicator of each pixel over each output cell numerically
-    x = (np.arange(n_out * fine) + 0.5) / (n_out * fine) * n_in  # input edge coordinates
-    brute = np.stack([np.bincount(np.floor(x[j * fine:(j + 1) * fine]).astype(int),
-                                  minlength=n_in) / fine for j in range(n_out)])
-    np.testing.assert_allclose(w, brute, atol=2e-3)
-    centres = (np.arange(n_out) + 0.5) * n_in / n_out
-    np.testing.assert_array_equal(images.nearest_indices(n_in, n_out),
-                                  np.minimum(np.floor(centres + 1e-9), n_in - 1).astype(int))
+def test_area_downsampling_and_nearest_indices_against_brute_force():
+  rng = np.random.default_rng(0)
+  for (hi, wi), (ho, wo) in (((12, 15), (5, 6)), ((9, 9), (3, 3)), ((7, 10), (7, 4))):
+    img = rng.uniform(size=(hi, wi, 2))
+    # Split every input pixel into ho × wo equal sub-pixels: each output cell is then exactly
+    # hi × wi whole sub-pixels, so the area mean is a plain block mean.
+    fine = np.repeat(np.repeat(img, ho, axis=0), wo, axis=1)  # [hi·ho, wi·wo, 2]
+    brute = fine.reshape(ho, hi, wo, wi, 2).mean(axis=(1, 3))
+    np.testing.assert_allclose(images.downsample_area(img, (ho, wo)), brute, atol=1e-12)
+    np.testing.assert_allclose(images.downsample_area(img[..., 0], (ho, wo)), brute[..., 0],
+                               atol=1e-12)
+    centres = (np.arange(ho) + 0.5) * hi / ho  # output centres in input edge coordinates
+    np.testing.assert_array_equal(images.nearest_indices(hi, ho),
+                                  np.minimum(np.floor(centres + 1e-9), hi - 1).astype(int))
 
 
 def test_dtu_cameras_recovered_from_npz(tmp_path):
@@ -365,6 +368,7 @@ def test_registry_uorf_holds_out_validation_scenes(tmp_path):
   assert fx.folder_hash(tmp_path) == before
 
 
+@pytest.mark.slow  # renders with JAX: ~10 s idle, ~30 s on a busy 2-core host
 def test_registry_reads_a_real_generator_folder(tmp_path):
   generator = pytest.importorskip("slotlifter_jax.data.generator")
   generator.generate_dataset(str(tmp_path), family="clevr", num_train=1, num_val=1, num_test=1,
