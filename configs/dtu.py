@@ -14,6 +14,7 @@ def get_config(variant: str = ""):
   c.data.subset = ""
   c.data.image_size = 0  # as on disk (300×400)
   c.data.num_source_views = 4
+  c.data.num_val_scenes = 8  # held out of the training scenes
   c.data.has_masks = False
   c.data.scene_scale = 1.0
   c.model.num_slots = 8

@@ -14,6 +14,7 @@ def get_config(variant: str = ""):
   c.data.subset = ""
   c.data.image_size = 0  # as on disk (480×640)
   c.data.num_source_views = 4
+  c.data.num_val_scenes = 10  # held out of the training scenes
   c.data.scene_scale = 1.0
   c.model.num_slots = 8
   c.model.feature_dim = 32
