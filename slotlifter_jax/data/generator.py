@@ -619,39 +619,51 @@ def convex_span(*, origins: jax.Array, directions: jax.Array, slab: jax.Array, q
   return Span(entry_terms=entry_terms, exit=exit_, ok=ok)
 
 
-def _intersect_primitives_xyz(o: tuple, d: tuple, scene: SceneArrays, quadrics: bool):
-  """Ray components (each broadcastable to [...]) → [P, ...] entry parameters (inf: missed).
-
-  Primitives are the leading axis so that the innermost loop runs over contiguous rays with
-  per-primitive scalars, which XLA vectorises (a trailing P axis was ~2× slower on CPU).
-  """
-  ndim = max(jnp.ndim(c) for c in o + d)
-  per_prim = lambda x: x.reshape(x.shape[:1] + (1,) * ndim)  # [P] → [P, 1, …]
-  cos, sin = per_prim(jnp.cos(scene.yaw)), per_prim(jnp.sin(scene.yaw))
-  ox, oy, oz = (c - per_prim(scene.centre[:, i]) for i, c in enumerate(o))  # [P, ...]
+def _primitive_entry(o: tuple, d: tuple, scene: SceneArrays, p, quadrics: bool) -> jax.Array:
+  """Entry parameter [...] of rays (xyz component tuples) into primitive p (inf: missed)."""
+  cos, sin = jnp.cos(scene.yaw[p]), jnp.sin(scene.yaw[p])
+  ox, oy, oz = (c - scene.centre[p, i] for i, c in enumerate(o))
   o_l = (cos * ox + sin * oy, -sin * ox + cos * oy, oz)
   d_l = (cos * d[0] + sin * d[1], -sin * d[0] + cos * d[1], d[2])
-  slab = tuple(per_prim(scene.slab[:, i]) for i in range(3))
-  quad = tuple(per_prim(scene.quad[:, i]) for i in range(3))
-  nx, ny, nz, nq, exit_, ok = _span_terms(o_l, d_l, slab, quad, per_prim(scene.radius), quadrics)
+  slab = (scene.slab[p, 0], scene.slab[p, 1], scene.slab[p, 2])
+  quad = (scene.quad[p, 0], scene.quad[p, 1], scene.quad[p, 2])
+  nx, ny, nz, nq, exit_, ok = _span_terms(o_l, d_l, slab, quad, scene.radius[p], quadrics)
   entry = jnp.maximum(jnp.maximum(nx, ny), jnp.maximum(nz, nq))
-  hit = ok & (entry <= exit_) & (entry > T_MIN) & per_prim(scene.active)
+  hit = ok & (entry <= exit_) & (entry > T_MIN) & scene.active[p]
   return jnp.where(hit, entry, jnp.inf)
 
 
-def _min_and_argmin(t: jax.Array) -> tuple[jax.Array, jax.Array]:
-  """Min and argmin over axis 0 in ONE variadic reduction (ties keep the lower index).
+# Loops over primitives are lax.fori_loops whose body handles one primitive with its parameters as
+# scalars: XLA:CPU compiles the body into one vectorised pass over contiguous rays (≈ 1 ns per
+# ray·primitive). Both alternatives were slower: a [P, R] array reduced over P ran ≈ 7× slower
+# (scalar reduction code), and unrolling P made compilation take 3× longer.
 
-  Separate jnp.min and jnp.argmin make XLA fuse the whole intersection into both reductions,
-  computing it twice.
-  """
-  index = jax.lax.broadcasted_iota(jnp.int32, t.shape, 0)
 
-  def pick(a, b):
-    take_b = (b[0] < a[0]) | ((b[0] == a[0]) & (b[1] < a[1]))
-    return jnp.where(take_b, b[0], a[0]), jnp.where(take_b, b[1], a[1])
+def _nearest_primitive(o: tuple, d: tuple, scene: SceneArrays,
+                       quadrics: bool) -> tuple[jax.Array, jax.Array]:
+  """Nearest entry parameter [R] over the primitives and its index (ties keep the lower)."""
+  shape = jnp.broadcast_shapes(*(jnp.shape(c) for c in o + d))
 
-  return jax.lax.reduce((t, index), (jnp.float32(jnp.inf), jnp.int32(0)), pick, (0,))
+  def body(p, carry):
+    best, index = carry
+    t = _primitive_entry(o, d, scene, p, quadrics)
+    closer = t < best
+    return jnp.where(closer, t, best), jnp.where(closer, p, index)
+
+  init = (jnp.full(shape, jnp.inf, jnp.float32), jnp.zeros(shape, jnp.int32))
+  return jax.lax.fori_loop(0, scene.centre.shape[0], body, init)
+
+
+def _blocked(o: tuple, directions: list, scene: SceneArrays, quadrics: bool) -> list:
+  """For each of the given directions, whether any primitive blocks the rays from o: [R] bools."""
+  shape = jnp.broadcast_shapes(*(jnp.shape(c) for c in o))
+
+  def body(p, carry):
+    return tuple(c | (_primitive_entry(o, d, scene, p, quadrics) < jnp.inf)
+                 for c, d in zip(carry, directions))
+
+  init = tuple(jnp.zeros(shape, bool) for _ in directions)
+  return list(jax.lax.fori_loop(0, scene.centre.shape[0], body, init))
 
 
 def intersect_primitives(*, origins: jax.Array, directions: jax.Array, scene: SceneArrays,
@@ -660,8 +672,9 @@ def intersect_primitives(*, origins: jax.Array, directions: jax.Array, scene: Sc
 
   `quadrics=False` skips the quadric term (valid when every primitive is a box).
   """
-  t = _intersect_primitives_xyz(_unstack(origins), _unstack(directions), scene, quadrics)
-  return jnp.moveaxis(t, 0, -1)
+  o, d = _unstack(origins), _unstack(directions)
+  t = [_primitive_entry(o, d, scene, p, quadrics) for p in range(scene.centre.shape[0])]
+  return jnp.stack(jnp.broadcast_arrays(*t), axis=-1)
 
 
 def _intersect_background_xyz(o: tuple, d: tuple, scene: SceneArrays, walls: bool) -> list:
@@ -707,7 +720,7 @@ class Hit:
 
 
 def _trace_xyz(o: tuple, d: tuple, scene: SceneArrays, options: RenderOptions) -> Hit:
-  t, surface = _min_and_argmin(_intersect_primitives_xyz(o, d, scene, options.quadrics))  # [R]
+  t, surface = _nearest_primitive(o, d, scene, options.quadrics)  # [R]
   p = scene.centre.shape[0]
   for b, t_b in enumerate(_intersect_background_xyz(o, d, scene, options.walls)):
     closer = t_b < t
@@ -725,9 +738,8 @@ def trace(*, origins: jax.Array, directions: jax.Array, scene: SceneArrays,
 def occluded(*, origins: jax.Array, directions: jax.Array, scene: SceneArrays,
              options: RenderOptions) -> jax.Array:
   """Whether a primitive blocks each ray (shadow rays; floor and walls never block): [...]."""
-  t = intersect_primitives(origins=origins, directions=directions, scene=scene,
-                           quadrics=options.quadrics)
-  return jnp.min(t, axis=-1) < jnp.inf
+  o = tuple(jnp.broadcast_arrays(*_unstack(origins), *_unstack(directions))[:3])
+  return _blocked(o, [_unstack(directions)], scene, options.quadrics)[0]
 
 
 # Vectors of [R] component arrays: the shading code works on (x, y, z) tuples so XLA fuses it into a
@@ -887,42 +899,85 @@ def _albedo_xyz(points: Vec, cols: list, textures: bool = True) -> Vec:
 # =============================================================================================
 
 
-def _shade_xyz(origins: Vec, directions: Vec, hit: Hit, scene: SceneArrays,
-               options: RenderOptions, *, shadows: bool, bounce: bool) -> Vec:
+@flax.struct.dataclass
+class _Surface:
+  """What the lighting needs at each ray's first hit (a "G-buffer"); vectors are xyz tuples."""
+  hit: jax.Array  # [R] bool
+  points: tuple
+  normals: tuple
+  view: tuple  # unit ray direction
+  albedo: tuple
+  specular: tuple
+  reflect: tuple
+  shininess: jax.Array  # [R]
+
+
+def _surface_xyz(origins: Vec, directions: Vec, hit: Hit, scene: SceneArrays,
+                 options: RenderOptions) -> _Surface:
   g = jnp.where(hit.hit, hit.surface, 0)
   t = jnp.where(hit.hit, hit.t, 0.0)
   points = tuple(o + t * d for o, d in zip(origins, directions))
-  normals = _surface_normals_xyz(origins, directions, hit, scene, options)
-  view = _unit(directions)
   cols = _gather_columns(_material_table(scene), g)
-  albedo = _albedo_xyz(points, cols, options.textures)
-  specular, reflect, shininess = cols[6:9], cols[9:12], cols[22]
-  start = tuple(p + SURFACE_OFFSET * n for p, n in zip(points, normals))
+  return _Surface(hit=hit.hit, points=points,
+                  normals=_surface_normals_xyz(origins, directions, hit, scene, options),
+                  view=_unit(directions), albedo=_albedo_xyz(points, cols, options.textures),
+                  specular=tuple(cols[6:9]), reflect=tuple(cols[9:12]), shininess=cols[22])
+
+
+def _offset_points(surface: _Surface) -> Vec:
+  """Start points of secondary rays, just off the surface so they do not hit it again."""
+  return tuple(p + SURFACE_OFFSET * n for p, n in zip(surface.points, surface.normals))
+
+
+def _light_visibility(surface: _Surface, scene: SceneArrays, options: RenderOptions) -> list:
+  """L arrays [R]: 1 where the directional light is unoccluded (a shadow ray per light)."""
+  lights = [(scene.light_dir[l, 0], scene.light_dir[l, 1], scene.light_dir[l, 2])
+            for l in range(scene.light_dir.shape[0])]
+  blocked = _blocked(_offset_points(surface), lights, scene, options.quadrics)
+  return [jnp.where(b, 0.0, 1.0) for b in blocked]
+
+
+def _direct_light(surface: _Surface, visibility: Optional[list], scene: SceneArrays) -> Vec:
+  """Ambient + Lambert + Blinn–Phong per light, linear RGB; the sky colour where nothing is hit."""
   diffuse_light = [scene.ambient[c] for c in range(3)]
   highlight_light = [0.0, 0.0, 0.0]
   for l in range(scene.light_dir.shape[0]):  # L = 3 lights, unrolled
     light = (scene.light_dir[l, 0], scene.light_dir[l, 1], scene.light_dir[l, 2])
-    n_dot_l = jnp.maximum(_dot(normals, light), 0.0)
-    if shadows:
-      t_block = _intersect_primitives_xyz(start, light, scene, options.quadrics)  # [P, R]
-      visible = jnp.where(jnp.min(t_block, axis=0) < jnp.inf, 0.0, 1.0)
-    else:
-      visible = 1.0
-    half = _unit(tuple(li - v for li, v in zip(light, view)))
-    n_dot_h = jnp.maximum(_dot(normals, half), 0.0)
-    highlight = jnp.where(n_dot_l > 0, n_dot_h ** shininess, 0.0) * visible
+    visible = 1.0 if visibility is None else visibility[l]
+    n_dot_l = jnp.maximum(_dot(surface.normals, light), 0.0)
+    half = _unit(tuple(li - v for li, v in zip(light, surface.view)))
+    n_dot_h = jnp.maximum(_dot(surface.normals, half), 0.0)
+    highlight = jnp.where(n_dot_l > 0, n_dot_h ** surface.shininess, 0.0) * visible
     for c in range(3):
       diffuse_light[c] = diffuse_light[c] + scene.light_rgb[l, c] * n_dot_l * visible
       highlight_light[c] = highlight_light[c] + scene.light_rgb[l, c] * highlight
-  radiance = [albedo[c] * diffuse_light[c] + specular[c] * highlight_light[c] for c in range(3)]
+  return tuple(jnp.where(surface.hit, a * dl + k * hl, sky) for a, dl, k, hl, sky in zip(
+      surface.albedo, diffuse_light, surface.specular, highlight_light, SKY_LINEAR))
+
+
+def _mirror_rays(surface: _Surface) -> tuple[Vec, Vec]:
+  dn = 2.0 * _dot(surface.view, surface.normals)
+  mirror = _unit(tuple(v - dn * n for v, n in zip(surface.view, surface.normals)))
+  return _offset_points(surface), mirror
+
+
+def _add_reflection(radiance: Vec, surface: _Surface, bounced: Vec) -> Vec:
+  return tuple(jnp.where(surface.hit, r + k * b, r)
+               for r, k, b in zip(radiance, surface.reflect, bounced))
+
+
+def _shade_xyz(origins: Vec, directions: Vec, hit: Hit, scene: SceneArrays,
+               options: RenderOptions, *, shadows: bool, bounce: bool) -> Vec:
+  surface = _surface_xyz(origins, directions, hit, scene, options)
+  visibility = _light_visibility(surface, scene, options) if shadows else None
+  radiance = _direct_light(surface, visibility, scene)
   if bounce:
     # One mirror bounce (metal), its hit shaded without shadows or further bounces.
-    dn = 2.0 * _dot(view, normals)
-    mirror = _unit(tuple(v - dn * n for v, n in zip(view, normals)))
+    start, mirror = _mirror_rays(surface)
     hit2 = _trace_xyz(start, mirror, scene, options)
-    bounced = _shade_xyz(start, mirror, hit2, scene, options, shadows=False, bounce=False)
-    radiance = [r + k * b for r, k, b in zip(radiance, reflect, bounced)]
-  return tuple(jnp.where(hit.hit, r, s) for r, s in zip(radiance, SKY_LINEAR))
+    bounced = _direct_light(_surface_xyz(start, mirror, hit2, scene, options), None, scene)
+    radiance = _add_reflection(radiance, surface, bounced)
+  return radiance
 
 
 def shade(*, origins: jax.Array, directions: jax.Array, hit: Hit, scene: SceneArrays,
@@ -930,7 +985,8 @@ def shade(*, origins: jax.Array, directions: jax.Array, hit: Hit, scene: SceneAr
   """Linear radiance [R, 3] of the first hit: ambient + Lambert + Blinn–Phong per light.
 
   Shadow rays go to each directional light (only primitives occlude); metal adds one mirror bounce
-  whose hit is shaded without shadows or further bounces.
+  whose hit is shaded without shadows or further bounces. (`render_views` runs the same steps as
+  separately compiled stages.)
   """
   return jnp.stack(_shade_xyz(_unstack(origins), _unstack(directions), hit, scene, options,
                               shadows=shadows, bounce=bounce), axis=-1)
@@ -983,25 +1039,51 @@ def render_centre(scene: SceneArrays, *, cam_to_world: jax.Array, intrinsics: ja
   return label.reshape(shape), depth.reshape(shape)
 
 
-@functools.partial(jax.jit, static_argnames=("image_size", "options"))
+# render_views runs as separately compiled stages. Each stage's inputs are materialised arrays,
+# which keeps XLA from fusing (and so recomputing) shading inputs into every ray×primitive loop of
+# the shadow and bounce traces; one jit over everything was 2–3× slower on CPU.
+_options_jit = functools.partial(jax.jit, static_argnames=("options",))
+_stage_trace = _options_jit(_trace_xyz)
+_stage_surface = _options_jit(_surface_xyz)
+_stage_visibility = _options_jit(_light_visibility)
+_stage_direct_light = jax.jit(_direct_light)
+_stage_mirror_rays = jax.jit(_mirror_rays)
+_stage_add_reflection = jax.jit(_add_reflection)
+
+
+@functools.partial(jax.jit, static_argnames=("image_size", "supersample"))
+def _stage_rays(cam_to_world, intrinsics, *, image_size: int, supersample: int):
+  origins, dirs = camera_rays(cam_to_world=cam_to_world, intrinsics=intrinsics,
+                              image_size=image_size,
+                              offsets=jnp.asarray(supersample_offsets(supersample)))
+  return _unstack(origins.reshape(-1, 3)), _unstack(dirs.reshape(-1, 3))  # 3 × [R]
+
+
+@functools.partial(jax.jit, static_argnames=("shape",))
+def _stage_resolve(radiance: Vec, *, shape: tuple) -> jax.Array:
+  # Average the A supersamples in linear light, then gamma-encode (anti-aliasing, SPEC §3.5).
+  rgb = [jnp.mean(jnp.clip(r, 0.0, 1.0).reshape(shape), axis=3) ** (1.0 / GAMMA)
+         for r in radiance]  # 3 × [N, H, W]
+  return jnp.stack(rgb, axis=-1)
+
+
 def render_views(scene: SceneArrays, *, cam_to_world: jax.Array, intrinsics: jax.Array,
                  image_size: int, options: RenderOptions) -> Render:
   """All N views of a scene: cam_to_world [N, 4, 4] (world units), pixel intrinsics [3, 3]."""
-  offsets = jnp.asarray(supersample_offsets(options.supersample))
-  origins, dirs = camera_rays(cam_to_world=cam_to_world, intrinsics=intrinsics,
-                              image_size=image_size, offsets=offsets)  # [N, H, W, A, 3]
-  shape = origins.shape[:4]
-  o = _unstack(origins.reshape(-1, 3))  # 3 × [R]
-  d = _unstack(dirs.reshape(-1, 3))
-  hit = _trace_xyz(o, d, scene, options)
-  radiance = _shade_xyz(o, d, hit, scene, options, shadows=True, bounce=options.reflections)
-  # Average in linear light, then gamma-encode (anti-aliasing, SPEC §3.5). Channels stay separate
-  # arrays up to here: stacking earlier makes XLA recompute the whole shading chain per channel.
-  rgb = [jnp.mean(jnp.clip(r, 0.0, 1.0).reshape(shape), axis=3) ** (1.0 / GAMMA)
-         for r in radiance]  # 3 × [N, H, W]
+  o, d = _stage_rays(cam_to_world, intrinsics, image_size=image_size,
+                     supersample=options.supersample)  # 3 × [R], R = N·H·W·A
+  hit = _stage_trace(o, d, scene, options)
+  surface = _stage_surface(o, d, hit, scene, options)
+  radiance = _stage_direct_light(surface, _stage_visibility(surface, scene, options), scene)
+  if options.reflections:
+    start, mirror = _stage_mirror_rays(surface)
+    hit2 = _stage_trace(start, mirror, scene, options)
+    bounced = _stage_direct_light(_stage_surface(start, mirror, hit2, scene, options), None, scene)
+    radiance = _stage_add_reflection(radiance, surface, bounced)
+  shape = (cam_to_world.shape[0], image_size, image_size, options.supersample ** 2)
   label, depth = render_centre(scene, cam_to_world=cam_to_world, intrinsics=intrinsics,
                                image_size=image_size, options=options)
-  return Render(rgb=jnp.stack(rgb, axis=-1), label=label, depth=depth)
+  return Render(rgb=_stage_resolve(radiance, shape=shape), label=label, depth=depth)
 
 
 # =============================================================================================
@@ -1041,9 +1123,11 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
     cameras = tuple(sample_cameras(rng, views))
     c2w = np.stack([camera_to_world(c) for c in cameras])
     arrays = scene_arrays(spec)
-    label0, _ = render_centre(arrays, cam_to_world=jnp.asarray(c2w[:1], jnp.float32),
+    # All N views, although only view 0 is checked: the same shape as render_views' centre pass,
+    # so nothing extra is compiled.
+    labels, _ = render_centre(arrays, cam_to_world=jnp.asarray(c2w, jnp.float32),
                               intrinsics=k32, image_size=image_size, options=options)
-    counts = np.bincount(np.asarray(label0).ravel(), minlength=len(spec.objects) + 1)
+    counts = np.bincount(np.asarray(labels[0]).ravel(), minlength=len(spec.objects) + 1)
     if np.all(counts[1:len(spec.objects) + 1] >= threshold):
       break
   else:
