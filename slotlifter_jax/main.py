@@ -15,9 +15,19 @@ flags.mark_flags_as_required(["config", "workdir"])
 FLAGS = flags.FLAGS
 
 
+def _quiet_orbax():
+  """Orbax logs every file of every save at INFO through absl; keep only its warnings."""
+  import logging as py_logging
+  class _DropOrbaxInfo(py_logging.Filter):
+    def filter(self, record):
+      return record.levelno >= py_logging.WARNING or "/orbax/" not in record.pathname
+  logging.get_absl_handler().addFilter(_DropOrbaxInfo())
+
+
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
+  _quiet_orbax()
   import jax
   if FLAGS.distributed:
     jax.distributed.initialize()

@@ -89,9 +89,9 @@ def init_state(model, config, batch: dict, key: jax.Array) -> TrainState:
       locality=True, train=False))()
   params = variables["params"]
   tx = make_optimizer(config.train)
-  zero = jnp.zeros((), jnp.int32)
-  return TrainState(step=zero, params=params, opt_state=tx.init(params),
-                    nonfinite_in_row=zero, nonfinite_total=zero)
+  zero = lambda: jnp.zeros((), jnp.int32)  # distinct buffers: the step donates every leaf
+  return TrainState(step=zero(), params=params, opt_state=tx.init(params),
+                    nonfinite_in_row=zero(), nonfinite_total=zero())
 
 
 def _tree_all_finite(tree) -> jax.Array:
