@@ -159,7 +159,7 @@ class AllocationBlock(nn.Module):
   """One pre-LN allocation block on h [B, R, S, C] (see the module docstring).
 
   Called as (h, (rate, key), slots) → (h, None) so the same class runs in a loop or under nn.scan;
-  `rate` is the block's residual dropout rate (traced under scan), `key` its dropout key (unused
+  `rate` is the block's residual dropout rate (traced under scan), `key` its dropout key (None
   unless `train`).
   """
   width: int = 64
@@ -216,7 +216,7 @@ class AllocationTransformer(nn.Module):
     n = self.num_blocks
     rates = dropout_rates(n, self.max_dropout)
     # One key per block, drawn once here so the loop and scan layouts use the same randomness.
-    keys = jax.random.split(self.make_rng("dropout") if train else jax.random.key(0), n)
+    keys = jax.random.split(self.make_rng("dropout"), n) if train else None
     block_kwargs = dict(width=self.width, num_heads=self.num_heads,
                         self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim,
                         out_gain=(3.0 * n) ** -0.5, train=train)
@@ -228,8 +228,8 @@ class AllocationTransformer(nn.Module):
       h, _ = blocks(h, (jnp.asarray(rates), keys), slots)
     else:
       for i in range(n):
-        h, _ = AllocationBlock(**block_kwargs, name=f"block_{i}")(h, (float(rates[i]), keys[i]),
-                                                                  slots)
+        key = None if keys is None else keys[i]
+        h, _ = AllocationBlock(**block_kwargs, name=f"block_{i}")(h, (float(rates[i]), key), slots)
     return nn.LayerNorm(epsilon=LAYER_NORM_EPS, name="final_norm")(h)
 
 

@@ -12,6 +12,15 @@ from slotlifter_jax import decoder as dec
 B, R, S, K, C, DS = 2, 3, 7, 5, 16, 12
 
 
+def _key(seed):
+  # 'rbg' keys: the modules do not care, and they compile much faster than threefry on XLA:CPU.
+  return jax.random.key(seed, impl="rbg")
+
+
+def _init(module, *args, **kw):
+  return jax.jit(lambda key: module.init(key, *args, **kw))(_key(0))
+
+
 def _decoder(num_blocks=3, **kw):
   return dec.SlotDecoder(width=C, num_blocks=num_blocks, num_heads=4, self_attn_dim=8, ffn_dim=24,
                          max_dropout=0.2, locality_box=0.64, **kw)
@@ -112,7 +121,7 @@ def test_dropout_traced_rate():
 def test_slot_decoder_shapes_weights_density_and_jit():
   feats, slots, points = _inputs(scale=1.0)
   module = _decoder()
-  params = module.init(jax.random.key(0), feats, slots, points, locality=True, train=False)
+  params = _init(module, feats, slots, points, locality=True, train=False)
   apply = jax.jit(lambda p, locality: module.apply(p, feats, slots, points, locality=locality,
                                                     train=False))
   out = apply(params, True)
@@ -137,7 +146,7 @@ def test_slot_decoder_shapes_weights_density_and_jit():
 def test_rays_do_not_interact():
   feats, slots, points = _inputs(seed=1)
   module = _decoder()
-  params = module.init(jax.random.key(0), feats, slots, points, locality=True, train=False)
+  params = _init(module, feats, slots, points, locality=True, train=False)
   out = module.apply(params, feats, slots, points, locality=True, train=False)
   # Change ray 1 only (a random change: a constant shift would vanish in the pre-LN blocks).
   feats2 = feats.at[:, 1].add(jax.random.normal(jax.random.key(7), (B, S, C)))
@@ -159,13 +168,14 @@ def _stack_blocks(params, num_blocks):
 def test_remat_scan_layout_is_the_same_function(train):
   feats, slots, points = _inputs(seed=2, scale=1.0)
   loop, scan = _decoder(2, remat_scan=False), _decoder(2, remat_scan=True)
-  p_loop = loop.init(jax.random.key(0), feats, slots, points, locality=True, train=False)
-  p_scan_init = scan.init(jax.random.key(0), feats, slots, points, locality=True, train=False)
+  p_loop = _init(loop, feats, slots, points, locality=True, train=False)
+  p_scan_init = jax.eval_shape(lambda: scan.init(_key(0), feats, slots, points, locality=True,
+                                                 train=False))
   p_scan = _stack_blocks(p_loop, 2)
   chex.assert_trees_all_equal_shapes(p_scan, p_scan_init)
   count = lambda t: sum(x.size for x in jax.tree.leaves(t))
   assert count(p_loop) == count(p_scan_init)
-  rngs = {"dropout": jax.random.key(5)}
+  rngs = {"dropout": _key(5)}
 
   def run(module, params):
     def f(p, x):
@@ -186,9 +196,8 @@ def test_remat_scan_layout_is_the_same_function(train):
 def test_output_projection_gain():
   feats, slots, points = _inputs()
   module = dec.SlotDecoder(width=64, num_blocks=4, num_heads=4, self_attn_dim=16, ffn_dim=256)
-  init = jax.jit(lambda key: module.init(key, jnp.zeros((1, 2, 5, 64)), slots[:1],
-                                         points[:1, :2, :5], locality=False, train=False))
-  params = init(jax.random.key(0))["params"]["transformer"]["block_0"]
+  params = _init(module, jnp.zeros((1, 2, 5, 64)), slots[:1], points[:1, :2, :5], locality=False,
+                 train=False)["params"]["transformer"]["block_0"]
   gain = 12 ** -0.5
   def bound(kernel, g=1.0):
     return g * np.sqrt(6.0 / (kernel.shape[0] + kernel.shape[1]))
@@ -206,7 +215,7 @@ def test_colour_mlp():
   x = jax.random.normal(jax.random.key(0), (B, R, S, C)) * 10
   for mode, lo in [("unit", 0.0), ("signed", -1.0)]:
     mlp = dec.ColourMLP(hidden=C, num_layers=4, colour_range=mode)
-    params = mlp.init(jax.random.key(1), x)
+    params = _init(mlp, x)
     out = mlp.apply(params, x)
     chex.assert_shape(out, (B, R, S, 3))
     assert float(out.min()) >= lo and float(out.max()) <= 1.0

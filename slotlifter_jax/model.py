@@ -1,0 +1,277 @@
+"""SlotLifter: the encoder, slot attention, feature lifting and slot decoder composed (SPEC §1).
+
+Shapes: B scenes, V source views, R rays per scene, S samples per ray (S + fine samples in the fine
+pass), K slots (K+1 with the empty slot), D feature width, Ds slot width, C point width (64),
+H×W source-image size, h×w feature-map size.
+
+  encode:       source views → features [B, V, h, w, D] → slots [B, K, Ds]      (once per scene)
+  render_rays:  rays → samples → lifted features F_lift + positional embedding E_p = F_p
+                → allocation transformer + mapping (point-slot weights W, density σ)
+                → colour MLP(F_s + E_p) → volume rendering; optionally a fine pass.
+
+`render_rays` takes an `Encoded` so evaluation renders a full view in chunks of rays with the slots
+computed once. The rng streams are 'params', 'dropout' (residual dropout, stochastic depth),
+'noise' (slot initialisation), 'sample' (stratified jitter, fine samples) and 'mask' (random masking
+of the lifted features); only 'params' is needed when `train` is False.
+
+Choices where the SPEC leaves room or the official code differs:
+- Random masking keeps or drops a ray's lifted features alike in every scene of the batch
+  (`mask_shared_across_batch=True`, as the official code), and the same per-ray mask applies to the
+  fine pass (the official code never masks the fine pass, SPEC §8).
+- Fine samples are random in training and deterministic at evaluation (the official code does the
+  opposite, SPEC §8).
+- The fine pass owns its lifting Linear as well as its allocation transformer, mapping and colour
+  MLP, because in the official code all three live in the separate fine `NeRF`/`JointDecoder`;
+  the encoder, slots and positional Linear are shared.
+- Stratified samples use `geometry.stratified_depths`' default bins (all samples inside
+  [near, far]); `volume_render` puts the transparent remainder at `far`.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import flax.linen as nn
+import flax.struct
+import jax
+import jax.numpy as jnp
+import ml_collections
+
+from slotlifter_jax import decoder as decoder_lib
+from slotlifter_jax import geometry
+from slotlifter_jax import lifting
+from slotlifter_jax import render
+from slotlifter_jax.encoder import ResUNet
+from slotlifter_jax.slot_attention import SlotAttention
+
+# Top-level submodules whose parameters follow the "head" learning-rate schedule (SPEC §2: colour
+# MLP, lifting Linear, positional Linear); everything else is "backbone". Prefixes, so the fine
+# pass's `colour_mlp_fine` and `lift_proj_fine` are included.
+HEAD_MODULE_PREFIXES = ("colour_mlp", "lift_proj", "pos_proj")
+
+
+@flax.struct.dataclass
+class Encoded:
+  features: jax.Array  # [B, V, h, w, D] encoder feature maps
+  slots: jax.Array  # [B, K, Ds]
+  slot_attn: jax.Array  # [B, K, V·h·w] last slot-attention iteration, softmax over slots
+
+
+@flax.struct.dataclass
+class RenderOutput:
+  coarse: render.RenderResult  # colour [B, R, 3], depth [B, R], segmentation [B, R, K], …
+  fine: Optional[render.RenderResult]  # None without a fine pass
+  # Of the last pass (the fine one when present, so S is then num_samples + num_fine_samples):
+  point_slot_weights: jax.Array  # [B, R, S, K+1], index 0 = empty slot
+  z: jax.Array  # [B, R, S] sample depths
+  density: jax.Array  # [B, R, S] slot-based density σ
+
+
+@flax.struct.dataclass
+class ModelOutput:
+  render: RenderOutput
+  encoded: Encoded
+
+
+def encoder_input(*, images: jax.Array, cam_to_world: jax.Array,
+                  intrinsics: jax.Array) -> jax.Array:
+  """The encoder's 9 input channels per pixel: RGB ⊕ camera origin ⊕ unit ray direction (§1.1).
+
+  images [..., H, W, 3], cam_to_world [..., 4, 4], intrinsics [..., 3, 3] → [..., H, W, 9].
+  """
+  height, width = images.shape[-3], images.shape[-2]
+  rays = geometry.pixel_rays(cam_to_world=cam_to_world[..., None, None, :, :],
+                             intrinsics=intrinsics[..., None, None, :, :],
+                             pix=geometry.image_pixels(height, width))  # [..., H, W, 3] each
+  return jnp.concatenate([images, rays.origins.astype(images.dtype),
+                          rays.directions.astype(images.dtype)], axis=-1)
+
+
+def point_embedding_input(*, points: jax.Array, directions: jax.Array,
+                          num_freqs: int) -> jax.Array:
+  """[PE(xyz), PE(unit ray direction)] per sample (SPEC §1.3): points [B, R, S, 3],
+  directions [B, R, 3] → [B, R, S, 12·num_freqs] (120 for 10 frequencies)."""
+  pe_points = geometry.positional_encoding(points, num_freqs)  # [B, R, S, 6F]
+  pe_dirs = geometry.positional_encoding(directions, num_freqs)[..., None, :]  # [B, R, 1, 6F]
+  pe_dirs = jnp.broadcast_to(pe_dirs, pe_points.shape)
+  return jnp.concatenate([pe_points, pe_dirs], axis=-1)  # [B, R, S, 12F]
+
+
+class SlotLifter(nn.Module):
+  """The whole model; build it from a config with `build_model`."""
+  # Encoder (§1.1).
+  feature_dim: int = 64
+  encoder_stem_width: int = 64
+  encoder_widths: Sequence[int] = (64, 128, 256)
+  encoder_blocks: Sequence[int] = (3, 4, 6)
+  # Slot attention (§1.2).
+  num_slots: int = 8
+  slot_dim: int = 256
+  slot_iters: int = 3
+  slot_mlp_dim: int = 1024
+  slot_eps: float = 1.0
+  slot_drop_path: float = 0.2
+  # Point decoder (§1.3, §1.4).
+  point_dim: int = 64
+  num_blocks: int = 4
+  num_heads: int = 4
+  self_attn_dim: int = 16
+  ffn_dim: int = 256
+  max_dropout: float = 0.2
+  num_freqs: int = 10
+  colour_hidden: int = 64
+  colour_layers: int = 4
+  colour_range: str = "unit"
+  locality_box: float = 0.64
+  remat_scan: bool = False
+  mask_shared_across_batch: bool = True
+  # Rendering (§1.5).
+  density_scale: float = 25.0
+  near: float = 6.0 / 7.0
+  far: float = 20.0 / 7.0
+  num_samples: int = 96
+  num_fine_samples: int = 0
+
+  def setup(self):
+    self.encoder = ResUNet(out_dim=self.feature_dim, stem_width=self.encoder_stem_width,
+                           widths=tuple(self.encoder_widths), blocks=tuple(self.encoder_blocks))
+    self.slot_attention = SlotAttention(
+        num_slots=self.num_slots, slot_dim=self.slot_dim, num_iters=self.slot_iters,
+        mlp_dim=self.slot_mlp_dim, eps=self.slot_eps, drop_path_rate=self.slot_drop_path)
+    # xavier-uniform kernels, zero biases: the official `linear` helper.
+    dense = lambda name: nn.Dense(self.point_dim, kernel_init=nn.initializers.xavier_uniform(),
+                                  name=name)
+    self.pos_proj = dense("pos_proj")  # E_p, shared by both passes
+    passes = ["", "_fine"] if self.num_fine_samples > 0 else [""]
+    # One (lifting Linear, slot decoder, colour MLP) triple per pass; the input width of the lifting
+    # Linear (D+3 for V = 1, 2(D+3) for V > 1) is inferred from the first call.
+    self.lift_projs = [dense(f"lift_proj{p}") for p in passes]
+    self.allocations = [
+        decoder_lib.SlotDecoder(
+            width=self.point_dim, num_blocks=self.num_blocks, num_heads=self.num_heads,
+            self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim, max_dropout=self.max_dropout,
+            remat_scan=self.remat_scan, locality_box=self.locality_box, name=f"allocation{p}")
+        for p in passes]
+    self.colour_mlps = [
+        decoder_lib.ColourMLP(hidden=self.colour_hidden, num_layers=self.colour_layers,
+                              colour_range=self.colour_range, name=f"colour_mlp{p}")
+        for p in passes]
+
+  def encode(self, *, source_images: jax.Array, source_cam_to_world: jax.Array,
+             source_intrinsics: jax.Array, slot_noise_sigma=0.0, train: bool) -> Encoded:
+    """Source views [B, V, H, W, 3] (as given: the caller maps DTU images to [−1, 1]) → slots.
+
+    slot_noise_sigma: the (traced) σ of the slot initialisation noise; only used when `train`.
+    """
+    b, v, height, width, _ = source_images.shape
+    x = encoder_input(images=source_images, cam_to_world=source_cam_to_world,
+                      intrinsics=source_intrinsics)  # [B, V, H, W, 9]
+    feats = self.encoder(x.reshape((b * v, height, width, x.shape[-1])))  # [B·V, h, w, D]
+    feats = feats.reshape((b, v) + feats.shape[1:])  # [B, V, h, w, D]
+    flat = feats.reshape(b, -1, feats.shape[-1])  # [B, V·h·w, D]: all views together (§1.2)
+    result = self.slot_attention(flat, noise_sigma=slot_noise_sigma, train=train)
+    return Encoded(features=feats, slots=result.slots, slot_attn=result.attn)
+
+  def _render_pass(self, index: int, encoded: Encoded, *, source_images, source_cam_to_world,
+                   source_intrinsics, ray_origins, ray_directions, z, keep, locality, train):
+    """One pass (0 coarse, 1 fine) at depths z [B, R, S] → (RenderResult, decoder Allocation)."""
+    points = geometry.points_along_rays(origins=ray_origins, directions=ray_directions,
+                                        z=z)  # [B, R, S, 3]
+    lifted = lifting.project_and_gather(
+        points=points, cam_to_world=source_cam_to_world, intrinsics=source_intrinsics,
+        images=source_images, features=encoded.features)  # values [B, R, S, V, D+3]
+    fused = lifting.fuse_views(values=lifted.values, valid=lifted.valid)  # [B, R, S, (2)(D+3)]
+    f_lift = self.lift_projs[index](fused)  # [B, R, S, C]
+    if lifted.valid.shape[-1] == 1:
+      f_lift = f_lift * lifted.valid  # V = 1: valid·Linear(x), the bias too (official)
+    if keep is not None:
+      f_lift = lifting.apply_ray_mask(lifted=f_lift, keep=keep)
+    e_p = self.pos_proj(point_embedding_input(points=points, directions=ray_directions,
+                                              num_freqs=self.num_freqs))  # [B, R, S, C]
+    alloc = self.allocations[index](f_lift + e_p, encoded.slots, points, locality=locality,
+                                    train=train)
+    colour = self.colour_mlps[index](alloc.features + e_p)  # [B, R, S, 3]
+    result = render.volume_render(density=alloc.density, z=z, colour=colour,
+                                  slot_weights=alloc.weights, far=self.far,
+                                  density_scale=self.density_scale)
+    return result, alloc
+
+  def render_rays(self, encoded: Encoded, *, source_images: jax.Array,
+                  source_cam_to_world: jax.Array, source_intrinsics: jax.Array,
+                  ray_origins: jax.Array, ray_directions: jax.Array, keep_ratio=1.0,
+                  locality=False, train: bool) -> RenderOutput:
+    """Renders rays [B, R, 3] (unit directions) of the scenes in `encoded`.
+
+    keep_ratio: (traced) probability that a ray keeps its lifted features; used only when `train`.
+    locality: (traced) bool switching the locality constraint (SPEC §1.4).
+    """
+    b, r = ray_origins.shape[:2]
+    sources = dict(source_images=source_images, source_cam_to_world=source_cam_to_world,
+                   source_intrinsics=source_intrinsics)
+    rays = dict(ray_origins=ray_origins, ray_directions=ray_directions)
+    z = geometry.stratified_depths(near=self.near, far=self.far, num_samples=self.num_samples,
+                                   batch_shape=(b, r),
+                                   key=self.make_rng("sample") if train else None)  # [B, R, S]
+    keep = None
+    if train:
+      keep = lifting.sample_ray_keep(key=self.make_rng("mask"), keep_ratio=keep_ratio,
+                                     shape=(b, r),
+                                     shared_across_batch=self.mask_shared_across_batch)  # [B, R]
+    coarse, alloc = self._render_pass(0, encoded, **sources, **rays, z=z, keep=keep,
+                                      locality=locality, train=train)
+    fine = None
+    if self.num_fine_samples > 0:
+      # Importance samples from the detached coarse weights, merged with the coarse depths.
+      z = geometry.fine_depths(z=z, weights=coarse.weights, num_samples=self.num_fine_samples,
+                               key=self.make_rng("sample") if train else None)
+      fine, alloc = self._render_pass(1, encoded, **sources, **rays, z=z, keep=keep,
+                                      locality=locality, train=train)
+    return RenderOutput(coarse=coarse, fine=fine, point_slot_weights=alloc.weights, z=z,
+                        density=alloc.density)
+
+  def __call__(self, *, source_images: jax.Array, source_cam_to_world: jax.Array,
+               source_intrinsics: jax.Array, ray_origins: jax.Array, ray_directions: jax.Array,
+               slot_noise_sigma=0.0, keep_ratio=1.0, locality=False,
+               train: bool) -> ModelOutput:
+    """encode + render_rays on the same scenes (the training forward pass)."""
+    sources = dict(source_images=source_images, source_cam_to_world=source_cam_to_world,
+                   source_intrinsics=source_intrinsics)
+    encoded = self.encode(**sources, slot_noise_sigma=slot_noise_sigma, train=train)
+    out = self.render_rays(encoded, **sources, ray_origins=ray_origins,
+                           ray_directions=ray_directions, keep_ratio=keep_ratio,
+                           locality=locality, train=train)
+    return ModelOutput(render=out, encoded=encoded)
+
+
+def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
+  """A SlotLifter from `config.model` and `config.render` (plain Python values, no ConfigDict)."""
+  m, r = config.model, config.render
+  return SlotLifter(
+      feature_dim=int(m.feature_dim),
+      encoder_stem_width=int(m.encoder_stem_width),
+      encoder_widths=tuple(int(x) for x in m.encoder_widths),
+      encoder_blocks=tuple(int(x) for x in m.encoder_blocks),
+      num_slots=int(m.num_slots),
+      slot_dim=int(m.slot_dim),
+      slot_iters=int(m.slot_iters),
+      slot_mlp_dim=int(m.slot_mlp_dim),
+      slot_eps=float(m.slot_eps),
+      slot_drop_path=float(m.slot_drop_path),
+      point_dim=int(m.point_dim),
+      num_blocks=int(m.num_blocks),
+      num_heads=int(m.num_heads),
+      self_attn_dim=int(m.self_attn_dim),
+      ffn_dim=int(m.ffn_dim),
+      max_dropout=float(m.max_dropout),
+      num_freqs=int(m.num_freqs),
+      colour_hidden=int(m.colour_hidden),
+      colour_layers=int(m.colour_layers),
+      colour_range=str(m.colour_range),
+      locality_box=float(m.locality_box),
+      remat_scan=bool(m.remat_scan),
+      density_scale=float(m.density_scale),
+      near=float(r.near),
+      far=float(r.far),
+      num_samples=int(r.num_samples),
+      num_fine_samples=int(r.num_fine_samples),
+  )
