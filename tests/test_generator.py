@@ -189,6 +189,33 @@ def test_normals_match_sdf_gradient(part):
                              atol=2e-3)
 
 
+def test_staged_render_matches_single_function_shading():
+  """render_views runs compiled stages; shade() is the same maths as one function."""
+  rng = generator.scene_rng(seed=2, family="clevr", split="train", index=0)
+  spec = generator.sample_clevr_layout(rng)
+  scene = generator.scene_arrays(spec)
+  cams = np.stack([generator.camera_to_world(c) for c in generator.sample_cameras(rng, 2)])
+  size, options = 21, generator.render_options("clevr", supersample=1)
+  k = generator.uorf_intrinsics(size)
+  out = generator.render_views(scene, cam_to_world=jnp.asarray(cams, jnp.float32),
+                               intrinsics=jnp.asarray(k, jnp.float32), image_size=size,
+                               options=options)
+  origins, dirs = generator.camera_rays(
+      cam_to_world=jnp.asarray(cams, jnp.float32), intrinsics=jnp.asarray(k, jnp.float32),
+      image_size=size, offsets=jnp.zeros((1, 2), jnp.float32))
+  o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+  hit = generator.trace(origins=o, directions=d, scene=scene, options=options)
+  radiance = generator.shade(origins=o, directions=d, hit=hit, scene=scene, options=options,
+                             shadows=True, bounce=True)
+  expected = np.clip(np.asarray(radiance), 0, 1) ** (1 / generator.GAMMA)
+  np.testing.assert_allclose(np.asarray(out.rgb).reshape(-1, 3), expected, atol=1e-5)
+  # Shadows are there: without them the flat, untextured floor under directional lights would be
+  # almost uniform (only its faint highlight varies).
+  floor = np.asarray(radiance)[np.asarray(hit.surface) == scene.centre.shape[0]].sum(-1)
+  assert floor.max() - floor.min() > 0.1
+  np.testing.assert_array_equal(np.asarray(out.depth).ravel(), np.asarray(hit.t))
+
+
 # ---------------------------------------------------------------------------------------------
 # Generated data sets
 # ---------------------------------------------------------------------------------------------
@@ -368,6 +395,16 @@ def test_mask_png_grey_levels_survive_pil_l_conversion(clevr_root):
   np.testing.assert_array_equal(grey, rgb[..., 0])
   assert set(np.unique(grey)) <= set(meta["mask"]["label_grey_levels"])
   assert grey.min() == meta["mask"]["label_grey_levels"][0]  # background is the smallest level
+
+
+def test_eight_views_have_four_sources(tmp_path):
+  summary = generator.generate_dataset(
+      str(tmp_path), family="clevr", num_train=1, num_val=0, num_test=0, views=8, image_size=17,
+      seed=1, num_workers=1, progress=False)
+  with open(os.path.join(summary["splits"]["train"]["path"], "dataset.json")) as f:
+    meta = json.load(f)
+  assert meta["views_per_scene"] == 8 and meta["num_source_views"] == 4
+  assert [v[-4:] for v in meta["scenes"][0]["views"]] == [f"az{a:02d}" for a in range(8)]
 
 
 def test_existing_split_is_kept_not_overwritten(clevr_root):

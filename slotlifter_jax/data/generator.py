@@ -1,4 +1,4 @@
-"""The embedded default data set: procedural multi-view scenes and their analytic ray caster (SPEC §3.5).
+"""The embedded default data set: procedural multi-view scenes, analytic ray caster (SPEC §3.5).
 
 Vocabulary (SPEC.md, plus the generator's own letters): N views per scene, H×W image size,
 A anti-aliasing samples per pixel (a √A×√A grid), R rays (N·H·W·A for a colour pass, N·H·W for the
@@ -7,8 +7,9 @@ primitives, then the floor and the four room walls), L = 3 lights.
 
 A scene is a list of objects; every object is made of convex primitives (CLEVR: one cube, sphere or
 cylinder; room: a chair of six boxes). Every primitive is the intersection of three slabs and one
-quadric in its local frame (yawed about world z), so one branch-free formula intersects all of them:
-a box uses the slabs only, a sphere the quadric only, a capped cylinder the z slab and an xy quadric.
+quadric in its local frame (yawed about world z), so one branch-free formula intersects them all:
+a box uses the slabs only, a sphere the quadric only, a capped cylinder the z slab and an xy
+quadric.
 
 The ray caster is written in jax.numpy and compiled once per (N, H, W, P): it traces all rays of all
 views of a scene at once, with shadow rays to each light, one mirror bounce for metal and
@@ -59,7 +60,8 @@ FOCAL_Y_PER_HEIGHT = 35.0 / 24.0
 
 # ---- masks ----
 BACKGROUND_LABEL = 0
-LABEL_GREY_STEP = 17  # label l is drawn as grey (17·l, 17·l, 17·l); PIL's RGB→L maps it to 17·l exactly
+# Label l is drawn as grey (17·l, 17·l, 17·l); PIL's RGB→L conversion maps it back to 17·l exactly.
+LABEL_GREY_STEP = 17
 MAX_OBJECTS = {"clevr": 7, "room": 4}
 # An object must cover at least this many pixels of the source view at 128×128 (scaled by area).
 MIN_VISIBLE_PIXELS_128 = 20
@@ -130,7 +132,8 @@ class Primitive:
   """One convex primitive in world units; it is yawed by `yaw` (radians) about world z."""
   kind: str  # box | sphere | cylinder
   centre: tuple[float, float, float]
-  half_size: tuple[float, float, float]  # box: half extents; sphere: (r, r, r); cylinder: (r, r, h/2)
+  # box: half extents; sphere: (r, r, r); cylinder: (radius, radius, half height)
+  half_size: tuple[float, float, float]
   yaw: float
 
   def to_json(self) -> dict:
@@ -243,7 +246,8 @@ def sample_cameras(rng: np.random.Generator, num_views: int) -> list[CameraSpec]
   for _ in range(num_views):
     cams.append(CameraSpec(
         azimuth_deg=float(rng.uniform(0.0, 360.0)),
-        elevation_deg=float(CAMERA_ELEVATION_DEG + rng.uniform(-1, 1) * CAMERA_ELEVATION_JITTER_DEG),
+        elevation_deg=float(CAMERA_ELEVATION_DEG +
+                            rng.uniform(-1, 1) * CAMERA_ELEVATION_JITTER_DEG),
         radius=float(CAMERA_RADIUS + rng.uniform(-1, 1) * CAMERA_RADIUS_JITTER)))
   return cams
 
@@ -535,41 +539,23 @@ def scene_arrays(spec: SceneSpec) -> SceneArrays:
 # =============================================================================================
 
 
-@flax.struct.dataclass
-class Span:
-  """Where a ray is inside a convex primitive: t ∈ [entry, exit] when `ok`."""
-  entry_terms: jax.Array  # [..., 4] entry parameter of the x, y, z slabs and of the quadric
-  exit: jax.Array  # [...]
-  ok: jax.Array  # [...] bool: the quadric is crossed at all
-
-  @property
-  def entry(self) -> jax.Array:
-    return jnp.max(self.entry_terms, axis=-1)
+# Vectors are tuples of [R] component arrays, not [R, 3] stacks, in the intersection and shading
+# code: XLA then fuses each step into a few loops over the rays instead of materialising (and, at
+# every stack, recomputing per channel) [R, 3] intermediates; stacked code was 3–5× slower on CPU.
+Vec = tuple  # (x, y, z), each [...]
 
 
-def to_local(points: jax.Array, centre: jax.Array, yaw: jax.Array, *,
-             is_direction: bool = False) -> jax.Array:
-  """World → primitive frame (rotation by −yaw about z): [..., 3] with broadcastable centre/yaw."""
-  return jnp.stack(jnp.broadcast_arrays(*_local_xyz(points, centre, yaw, is_direction)), axis=-1)
+def _dot(a: Vec, b: Vec) -> jax.Array:
+  return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-def from_local(vectors: jax.Array, yaw: jax.Array) -> jax.Array:
-  c, s = jnp.cos(yaw), jnp.sin(yaw)
-  x, y = c * vectors[..., 0] - s * vectors[..., 1], s * vectors[..., 0] + c * vectors[..., 1]
-  return jnp.stack([x, y, jnp.broadcast_to(vectors[..., 2], x.shape)], axis=-1)
+def _unit(a: Vec) -> Vec:
+  inv = 1.0 / jnp.maximum(jnp.sqrt(_dot(a, a)), 1e-12)
+  return a[0] * inv, a[1] * inv, a[2] * inv
 
 
-# The intersection code works on separate x, y, z component arrays rather than [..., 3] stacks:
-# XLA then fuses each ray × primitive test into one loop instead of materialising [R, P, 3]
-# intermediates (3–4× faster on CPU).
-
-
-def _local_xyz(points, centre, yaw, is_direction):
-  px, py, pz = points[..., 0], points[..., 1], points[..., 2]
-  if not is_direction:
-    px, py, pz = px - centre[..., 0], py - centre[..., 1], pz - centre[..., 2]
-  c, s = jnp.cos(yaw), jnp.sin(yaw)
-  return c * px + s * py, -s * px + c * py, pz
+def _unstack(v: jax.Array) -> Vec:
+  return v[..., 0], v[..., 1], v[..., 2]
 
 
 def _slab(o, d, half):
@@ -607,16 +593,6 @@ def _span_terms(o, d, slab, quad, radius, quadrics: bool):
     return nx, ny, nz, jnp.full_like(nx, -UNBOUNDED), exit_, jnp.ones(nx.shape, bool)
   nq, fq, ok = _quadric(o, d, quad, radius)
   return nx, ny, nz, nq, jnp.minimum(exit_, fq), ok
-
-
-def convex_span(*, origins: jax.Array, directions: jax.Array, slab: jax.Array, quad: jax.Array,
-                radius: jax.Array, quadrics: bool = True) -> Span:
-  """Ray interval inside {|x_i| ≤ slab_i} ∩ {Σ quad_i x_i² ≤ radius²}, local frame, [..., 3]."""
-  unstack = lambda v: (v[..., 0], v[..., 1], v[..., 2])
-  nx, ny, nz, nq, exit_, ok = _span_terms(unstack(origins), unstack(directions), unstack(slab),
-                                          unstack(quad), radius, quadrics)
-  entry_terms = jnp.stack(jnp.broadcast_arrays(nx, ny, nz, nq), axis=-1)
-  return Span(entry_terms=entry_terms, exit=exit_, ok=ok)
 
 
 def _primitive_entry(o: tuple, d: tuple, scene: SceneArrays, p, quadrics: bool) -> jax.Array:
@@ -700,18 +676,6 @@ def _intersect_background_xyz(o: tuple, d: tuple, scene: SceneArrays, walls: boo
   return ts
 
 
-def intersect_background(*, origins: jax.Array, directions: jax.Array, scene: SceneArrays,
-                         walls: bool) -> jax.Array:
-  """Ray parameter of the floor and the 4 walls, inf where missed: [R, 3] → [R, 5] ([R, 1]: no walls).
-
-  The floor is the plane z = 0 seen from above (bounded by the walls in a room). Walls are
-  one-sided: only their inner face is hit, so a camera outside the room sees through the near walls
-  into it (a doll's-house view), as the uORF room renders do.
-  """
-  return jnp.stack(_intersect_background_xyz(_unstack(origins), _unstack(directions), scene,
-                                             walls), axis=-1)
-
-
 @flax.struct.dataclass
 class Hit:
   t: jax.Array  # [R] ray parameter (inf: no hit)
@@ -733,31 +697,6 @@ def trace(*, origins: jax.Array, directions: jax.Array, scene: SceneArrays,
           options: RenderOptions) -> Hit:
   """Closest surface along each ray: [R, 3] rays → Hit of [R] (surfaces g ∈ [0, P + 5))."""
   return _trace_xyz(_unstack(origins), _unstack(directions), scene, options)
-
-
-def occluded(*, origins: jax.Array, directions: jax.Array, scene: SceneArrays,
-             options: RenderOptions) -> jax.Array:
-  """Whether a primitive blocks each ray (shadow rays; floor and walls never block): [...]."""
-  o = tuple(jnp.broadcast_arrays(*_unstack(origins), *_unstack(directions))[:3])
-  return _blocked(o, [_unstack(directions)], scene, options.quadrics)[0]
-
-
-# Vectors of [R] component arrays: the shading code works on (x, y, z) tuples so XLA fuses it into a
-# few loops instead of materialising [R, 3] intermediates at every step.
-Vec = tuple  # (x, y, z), each [...]
-
-
-def _dot(a: Vec, b: Vec) -> jax.Array:
-  return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-
-
-def _unit(a: Vec) -> Vec:
-  inv = 1.0 / jnp.maximum(jnp.sqrt(_dot(a, a)), 1e-12)
-  return a[0] * inv, a[1] * inv, a[2] * inv
-
-
-def _unstack(v: jax.Array) -> Vec:
-  return v[..., 0], v[..., 1], v[..., 2]
 
 
 def _gather_columns(table: jax.Array, index: jax.Array) -> list[jax.Array]:
@@ -864,12 +803,6 @@ def _texture_mix(q: Vec, kind, scale, direction: Vec):
   tint = jnp.select([kind == TEX_WOOD, kind == TEX_TILES],
                     [wood_tint, jnp.where(grout, 0.45, 1.0)], 1.0)
   return mix, tint
-
-
-def textured_albedo(*, points: jax.Array, surface: jax.Array, scene: SceneArrays) -> jax.Array:
-  """Linear albedo [R, 3] at world points [R, 3] of surfaces [R] (solid textures, object frame)."""
-  cols = _gather_columns(_material_table(scene), surface)
-  return jnp.stack(_albedo_xyz(_unstack(points), cols), axis=-1)
 
 
 def _material_table(scene: SceneArrays) -> jax.Array:
@@ -1318,6 +1251,10 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
       summary["splits"][s] = {"path": paths[s], "num_scenes": counts[s],
                               "num_images": counts[s] * views, "seconds": seconds,
                               "scenes_per_second": counts[s] / seconds if seconds > 0 else 0.0}
+  except BaseException:
+    if pool is not None:
+      pool.terminate()  # an interrupted run stops its workers; the .partial folder is not renamed
+    raise
   finally:
     if pool is not None:
       pool.close()
