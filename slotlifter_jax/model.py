@@ -5,6 +5,7 @@ pass), K slots (K+1 with the empty slot), D feature width, Ds slot width, C poin
 H×W source-image size, h×w feature-map size.
 
   encode:       source views → features [B, V, h, w, D] → slots [B, K, Ds]      (once per scene)
+                (h×w = ceil(H/4)×ceil(W/4), see encoder.py)
   render_rays:  rays → samples → lifted features F_lift + positional embedding E_p = F_p
                 → allocation transformer + mapping (point-slot weights W, density σ)
                 → colour MLP(F_s + E_p) → volume rendering; optionally a fine pass.
@@ -183,7 +184,9 @@ class SlotLifter(nn.Module):
     fused = lifting.fuse_views(values=lifted.values, valid=lifted.valid)  # [B, R, S, (2)(D+3)]
     f_lift = self.lift_projs[index](fused)  # [B, R, S, C]
     if lifted.valid.shape[-1] == 1:
-      f_lift = f_lift * lifted.valid  # V = 1: valid·Linear(x), the bias too (official)
+      # V = 1: valid·Linear(x), so an invalid point gets no bias either (official); the view axis
+      # of valid [B, R, S, 1] broadcasts over C.
+      f_lift = f_lift * lifted.valid
     if keep is not None:
       f_lift = lifting.apply_ray_mask(lifted=f_lift, keep=keep)
     e_p = self.pos_proj(point_embedding_input(points=points, directions=ray_directions,
