@@ -181,7 +181,9 @@ def test_remat_scan_layout_is_the_same_function(train):
     def f(p, x):
       out = module.apply(p, x, slots, points, locality=True, train=train, rngs=rngs)
       return jnp.sum(out.features * out.density[..., None]), out
-    return jax.jit(jax.value_and_grad(f, argnums=(0, 1), has_aux=True))(params, feats)
+    # Tiny programs whose compilation dominates: skip XLA's backend optimisations.
+    return jax.jit(jax.value_and_grad(f, argnums=(0, 1), has_aux=True),
+                   compiler_options={"xla_backend_optimization_level": 0})(params, feats)
 
   (v_loop, out_loop), (g_loop, gx_loop) = run(loop, p_loop)
   (v_scan, out_scan), (g_scan, gx_scan) = run(scan, p_scan)
