@@ -1044,7 +1044,18 @@ def scene_rng(*, seed: int, family: str, split: str, index: int) -> np.random.Ge
 
 def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                    supersample: int = 2, max_attempts: int = 100) -> GeneratedScene:
-  """Samples layouts and cameras until every object covers enough pixels of view 0, then renders."""
+  """Samples layouts and cameras until every object covers enough pixels of view 0, then renders.
+
+  Always renders on the CPU backend, so the files do not depend on the accelerator (if any) of the
+  calling process, and a training process never shares its accelerator memory with the generator.
+  """
+  with jax.default_device(jax.local_devices(backend="cpu")[0]):
+    return _generate_scene(rng, family=family, views=views, image_size=image_size,
+                           supersample=supersample, max_attempts=max_attempts)
+
+
+def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
+                    supersample: int, max_attempts: int) -> GeneratedScene:
   if family not in FAMILIES:
     raise ValueError(f"unknown family {family!r}; choose one of {FAMILIES}")
   options = render_options(family, supersample)
@@ -1135,7 +1146,9 @@ def _write_scene(task: _SceneTask) -> dict:
 
 
 def _worker_init() -> None:
-  # One XLA thread per worker process: the pool already uses every core.
+  # Workers render on the CPU only (no accelerator start-up or memory reservation per worker), with
+  # one XLA thread each: the pool already uses every core.
+  os.environ["JAX_PLATFORMS"] = "cpu"
   os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
                              " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
 
