@@ -104,7 +104,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
       batch_scenes=config.train.batch_scenes, rays_per_scene=config.train.rays_per_scene,
       novel_ray_prob=config.data.novel_ray_prob, seed=config.seed)
   model = model_lib.build_model(config)
-  key = jax.random.key(config.seed)
+  key = jax.random.key(config.seed, impl=config.train.prng_impl)
   state = step_lib.init_state(model, config, sampler.batch(0), jax.random.fold_in(key, 0))
   num_params = sum(x.size for x in jax.tree.leaves(state.params))
   logging.info("model: %s parameters", f"{num_params:,}")
