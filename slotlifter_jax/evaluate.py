@@ -1,55 +1,483 @@
-"""Evaluation (SPEC §4): per-scene metrics of rendered views, and validation during training.
+"""Evaluation (SPEC §4): per-scene metrics of rendered views, the `--mode=eval` entry point, and
+validation during training.
 
-Source views: PSNR, ARI, FG-ARI. Novel views: PSNR (and SSIM/LPIPS in the full evaluation),
-NV-ARI and NV-FG-ARI averaged over the novel views of a scene, then over scenes. Prediction =
-argmax over the K real slots of the rendered segmentation.
+Vocabulary (SPEC): K slots, V source views, H×W image size, n rendered views of a scene.
+
+Every view of every scene is rendered at full resolution (`render_views.SceneRenderer`, chunked),
+source views included. Per scene:
+  source views  PSNR, ARI, FG-ARI, mBO, matched mIoU
+  novel views   PSNR, SSIM, LPIPS, NV-ARI, NV-FG-ARI, NV-mBO, NV-mIoU
+  all views     slots owning ≥ 1 % of the foreground vs the ground-truth object count
+A per-view value is averaged over the scene's views of its kind (views where it is NaN — no
+ground-truth mask, or no foreground for the FG metrics — are skipped), then `metrics.summarize`
+gives the mean ± standard error over scenes. Prediction = argmax over the K real slots of the
+rendered segmentation (`metrics.segmentation_from_render`). Segmentation metrics exist only for
+sets with masks (config.data.has_masks and scene.masks); they are never computed on made-up masks.
+
+`evaluate_split` writes DIR/eval/<split>/metrics.json and per_scene.csv (temp file + rename). The
+official-code quirks of SPEC §8 that move these numbers are off by default and recorded in the
+JSON when on: `lpips_quirk` (LPIPS fed [0, 1] images) and `nv_ari_last_view` (uORF's NV-ARI and
+NV-FG-ARI from the last novel view only).
 """
 
 from __future__ import annotations
 
+import csv
+import dataclasses
+import io
+import json
+import math
 import os
+import time
+from typing import Optional, Sequence
 
+import jax
+import ml_collections
 import numpy as np
+from absl import logging
+from tqdm import tqdm
 
+from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import metrics
+from slotlifter_jax import model as model_lib
 from slotlifter_jax import render_views
+from slotlifter_jax import train_step as step_lib
 from slotlifter_jax import vis
+from slotlifter_jax.data import pipeline
+from slotlifter_jax.data import registry
+from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
 
+# Metric names in the order of the printed table, with the definition written into metrics.json.
+METRIC_DEFINITIONS = {
+    "psnr_source": "PSNR (dB, data range 1) of the rendered source view(s), mean of per-image "
+                   "PSNRs",
+    "ari": "ARI (= sklearn adjusted_rand_score) over all pixels of the source view(s)",
+    "fg_ari": "ARI over the pixels whose ground-truth label is not background, source view(s); "
+              "views without foreground skipped",
+    "mbo": "mean best overlap, source view(s): each ground-truth object's best IoU over the "
+           "predicted slot masks, averaged over objects",
+    "miou": "Hungarian-matched mean IoU, source view(s): one-to-one object-slot matching "
+            "maximising total IoU, unmatched objects count 0, divided by the object count",
+    "psnr_novel": "PSNR (dB, data range 1) of the novel views, mean of per-image PSNRs",
+    "ssim": "SSIM of the novel views: Gaussian window 11, sigma 1.5, K1 0.01, K2 0.03, valid "
+            "region only, after piq's average pooling by round(min(H, W)/256)",
+    "lpips": "LPIPS of the novel views ({net}); images mapped to [-1, 1] ({quirk})",
+    "nv_ari": "ARI over all pixels of the novel views ({nv_rule})",
+    "nv_fg_ari": "FG-ARI of the novel views ({nv_rule}); views without foreground skipped",
+    "nv_mbo": "mean best overlap of the novel views, averaged over a scene's novel views",
+    "nv_miou": "Hungarian-matched mean IoU of the novel views, averaged over a scene's novel views",
+    "active_slots": "slots owning (as argmax) at least 1 % of the scene's foreground pixels, all "
+                    "rendered views with masks pooled",
+    "num_objects": "ground-truth foreground objects visible in those views",
+    "slot_excess": "active_slots - num_objects (0: one slot per visible object)",
+}
+AGGREGATION = ("a per-view value is averaged over the scene's views of its kind (NaN views "
+               "skipped), then mean, standard error (sample std / sqrt(count)) and count over "
+               "scenes; a scene without a usable view is skipped. Prediction = argmax over the K "
+               "real slots of the rendered segmentation. Non-finite numbers are written as null.")
 
-def scene_metrics(rendered: render_views.RenderedViews, scene: Scene, view_indices) -> dict:
-  """PSNR and segmentation metrics of one scene's rendered views, split into source and novel."""
-  view_indices = list(view_indices)
+
+class EvalSetupError(ValueError):
+  """A bad request to the evaluation (unknown split, checkpoint or scene index)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-scene metrics
+# ---------------------------------------------------------------------------------------------
+
+
+def lpips_net_for(config: ml_collections.ConfigDict) -> str:
+  """SPEC §4: AlexNet LPIPS for the synthetic sets, VGG for DTU and ScanNet."""
+  real = config.model.colour_range == "signed" or config.data.format in ("dtu", "scannet")
+  return "vgg" if real else "alex"
+
+
+def _nan_mean(values: np.ndarray) -> float:
+  """Mean of the non-NaN entries; NaN (silently) when there are none."""
+  return metrics.summarize(values).mean
+
+
+def scene_metrics(rendered: render_views.RenderedViews, scene: Scene, view_indices: Sequence[int],
+                  *, image_metrics: bool = False, lpips_net: str = "alex",
+                  lpips_quirk: bool = False, nv_ari_last_view: bool = False) -> dict[str, float]:
+  """The metrics of one scene from its rendered views (module docstring), as {name: float}.
+
+  Args:
+    rendered: the views `view_indices` of `scene`, in that order (colour in [0, 1]).
+    scene: ground truth; views in `scene.source_indices` count as source, all others as novel.
+    view_indices: which views of the scene `rendered` holds.
+    image_metrics: also SSIM and LPIPS of the novel views (the full evaluation; validation during
+      training skips them for speed).
+    lpips_net: "alex" or "vgg" (`lpips_net_for`).
+    lpips_quirk: feed [0, 1] images to LPIPS as the official evaluation does (SPEC §8).
+    nv_ari_last_view: NV-ARI and NV-FG-ARI from the scene's last novel view only (uORF, SPEC §8).
+
+  Keys are present only when the scene has views of their kind (and masks for the segmentation
+  metrics); values may be NaN (e.g. FG-ARI when no view shows foreground).
+  """
+  views = np.asarray(list(view_indices), np.int64)  # [n]
+  is_source = np.isin(views, np.asarray(scene.source_indices, np.int64))
+  source, novel = np.flatnonzero(is_source), np.flatnonzero(~is_source)
+  target = scene.images[views]  # [n, H, W, 3]
+  colour = np.asarray(rendered.colour)
   out = {}
-  groups = {"source": [i for i, v in enumerate(view_indices) if v in scene.source_indices],
-            "novel": [i for i, v in enumerate(view_indices) if v not in scene.source_indices]}
-  for group, rows in groups.items():
-    if not rows:
-      continue
-    views = [view_indices[i] for i in rows]
-    psnrs = [metrics.psnr(pred=rendered.colour[i], target=scene.images[v]) for i, v in zip(rows, views)]
-    out[f"psnr_{group}"] = float(np.mean(psnrs))
-    if scene.masks is None:
-      continue
-    has = [scene.mask_views is None or bool(scene.mask_views[v]) for v in views]
-    rows_m = [i for i, h in zip(rows, has) if h]
-    views_m = [v for v, h in zip(views, has) if h]
-    if not rows_m:
-      continue
-    pred = np.argmax(rendered.segmentation[rows_m], axis=-1).reshape(len(rows_m), -1)
-    true = scene.masks[views_m].reshape(len(rows_m), -1)
-    ari = metrics.ari(true_labels=true, pred_labels=pred)
-    fg = metrics.ari(true_labels=true, pred_labels=pred, ignore_background=True)
-    prefix = "" if group == "source" else "nv_"
-    out[f"{prefix}ari"] = float(np.nanmean(ari))
-    if np.any(np.isfinite(fg)):
-      out[f"{prefix}fg_ari"] = float(np.nanmean(fg))
+  psnr = metrics.psnr(pred=colour, target=target)  # [n]
+  if source.size:
+    out["psnr_source"] = _nan_mean(psnr[source])
+  if novel.size:
+    out["psnr_novel"] = _nan_mean(psnr[novel])
+    if image_metrics:
+      out["ssim"] = _nan_mean(metrics.ssim(pred=colour[novel], target=target[novel]))
+      out["lpips"] = _nan_mean(metrics.lpips(pred=colour[novel], target=target[novel],
+                                             net=lpips_net, official_quirk=lpips_quirk))
+  if scene.masks is None:
+    return out
+
+  n = views.size
+  has_mask = (np.ones(n, bool) if scene.mask_views is None
+              else np.asarray(scene.mask_views, bool)[views])  # [n]
+  true = scene.masks[views].reshape(n, -1)  # [n, H·W]
+  pred = metrics.segmentation_from_render(rendered.segmentation).reshape(n, -1)  # [n, H·W]
+  overlap = metrics.object_overlap(true_labels=true, pred_labels=pred)
+  per_view = {  # [n] each; NaN where a view has no ground-truth mask
+      "ari": metrics.ari(true_labels=true, pred_labels=pred),
+      "fg_ari": metrics.fg_ari(true_labels=true, pred_labels=pred),
+      "mbo": overlap.mbo,
+      "miou": overlap.miou,
+  }
+  per_view = {k: np.where(has_mask, v, np.nan) for k, v in per_view.items()}
+  if source.size and has_mask[source].any():
+    out.update({k: _nan_mean(v[source]) for k, v in per_view.items()})
+  if novel.size and has_mask[novel].any():
+    for k, v in per_view.items():
+      last = nv_ari_last_view and k in ("ari", "fg_ari")
+      out[f"nv_{k}"] = float(metrics.per_scene_novel_mean(values=[v[novel]],
+                                                          last_novel_only=last)[0])
+  masked = np.flatnonzero(has_mask)
+  if masked.size:
+    # The whole scene as one long view, so the 1 % threshold is of the scene's foreground.
+    count = metrics.active_slots(true_labels=true[masked].reshape(1, -1),
+                                 pred_labels=pred[masked].reshape(1, -1))
+    out["active_slots"] = float(count.num_active[0])
+    out["num_objects"] = float(count.num_objects[0])
+    out["slot_excess"] = out["active_slots"] - out["num_objects"]
   return out
 
 
-def mean_over_scenes(per_scene: list[dict]) -> dict:
+def mean_over_scenes(per_scene: list[dict]) -> dict[str, float]:
+  """{name: mean over the scenes that have a non-NaN value} (NaN when none has)."""
   keys = sorted({k for d in per_scene for k in d})
-  return {k: float(np.nanmean([d.get(k, np.nan) for d in per_scene])) for k in keys}
+  return {k: metrics.summarize([d.get(k, math.nan) for d in per_scene]).mean for k in keys}
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading a run: config check, data, checkpoint
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadedRun:
+  """A trained run ready to render: the (data-resolved) config, model, parameters and scenes."""
+  config: ml_collections.ConfigDict
+  model: model_lib.SlotLifter
+  params: dict
+  step: int  # the checkpoint's training step
+  checkpoint_dir: str  # DIR/checkpoints/{best,latest}/<step>
+  scenes: list[Scene]
+  split: str
+
+
+def init_batch(scene: Scene) -> dict[str, np.ndarray]:
+  """A one-scene, one-ray batch with the model's input shapes (parameter shapes depend only on V
+  and the image channels, not on H, W or the ray count)."""
+  idx = np.asarray(scene.source_indices)
+  centre = scene.cam_to_world[idx[0], :3, 3]
+  return dict(
+      source_images=scene.images[idx][None],  # [1, V, H, W, 3]
+      source_cam_to_world=scene.cam_to_world[idx][None],  # [1, V, 4, 4]
+      source_intrinsics=scene.intrinsics[idx][None],  # [1, V, 3, 3]
+      ray_origins=np.broadcast_to(centre, (1, 1, 3)).astype(np.float32),
+      ray_directions=scene.cam_to_world[idx[0], :3, 2][None, None].astype(np.float32),
+      target_rgb=np.zeros((1, 1, 3), np.float32),
+  )
+
+
+def abstract_state(model, config, scene: Scene) -> step_lib.TrainState:
+  """The train state's shapes and dtypes (nothing computed), placed on the first device."""
+  shapes = jax.eval_shape(
+      lambda: step_lib.init_state(model, config, init_batch(scene), jax.random.key(0)))
+  device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), shapes)
+
+
+def _choose_checkpoint(manager: ckpt_lib.Checkpoints, checkpoint: str) -> tuple[str, int]:
+  """('best' | 'latest', step) for --checkpoint = '' (best if any, else latest) | best | latest |
+  <step>."""
+  latest, best = manager.latest.all_steps(), manager.best.all_steps()
+  if not latest and not best:
+    raise FileNotFoundError(f"{manager.latest.directory}: no checkpoint; train this run first")
+  if checkpoint in ("", "best") and best:
+    return "best", int(manager.best.best_step())
+  if checkpoint == "best":
+    raise EvalSetupError(f"{manager.best.directory}: no best checkpoint (the run never "
+                         f"validated); use --checkpoint=latest")
+  if checkpoint in ("", "latest"):
+    if not latest:
+      raise EvalSetupError(f"{manager.latest.directory}: no latest checkpoint; use "
+                           f"--checkpoint=best")
+    return "latest", int(manager.latest.latest_step())
+  if not checkpoint.isdigit():
+    raise EvalSetupError(f"--checkpoint={checkpoint!r}: use best, latest or a step number")
+  step = int(checkpoint)
+  if step in latest:
+    return "latest", step
+  if step in best:
+    return "best", step
+  raise EvalSetupError(f"--checkpoint={step}: no such step; saved steps: latest "
+                       f"{sorted(latest)}, best {sorted(best)}")
+
+
+def _parameter_differences(abstract_params, step_dir: str, *, limit: int = 8) -> list[str]:
+  """'path: checkpoint shape, model shape' for every parameter whose shape differs, read from the
+  checkpoint's metadata (nothing is restored)."""
+  import orbax.checkpoint as ocp
+  from etils import epath
+  handler = ocp.StandardCheckpointHandler()
+  try:
+    saved = handler.metadata(epath.Path(step_dir) / "default")["params"]
+  finally:
+    handler.close()
+  def shapes(tree):
+    return {jax.tree_util.keystr(p): tuple(x.shape) for p, x in
+            jax.tree_util.tree_flatten_with_path(tree, is_leaf=lambda x: hasattr(x, "shape"))[0]}
+  a, b = shapes(saved), shapes(abstract_params)
+  out = [f"params{k}: checkpoint {a.get(k, 'absent')}, model {b.get(k, 'absent')}"
+         for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+  return out[:limit] + ([f"... and {len(out) - limit} more"] if len(out) > limit else [])
+
+
+def restore_params(model, config, workdir: str, *, scene: Scene,
+                   checkpoint: str = "") -> tuple[dict, int, str]:
+  """(params, step, step directory) of the run's checkpoint `checkpoint` (see `_choose_checkpoint`).
+
+  Raises CheckpointMismatchError naming the parameters whose shapes differ when the checkpoint
+  does not fit the model built from `config`. The shapes are compared on the checkpoint's
+  metadata first, so a mismatch never starts (and abandons) orbax's array reads.
+  """
+  root = os.path.join(workdir, "checkpoints")
+  if not os.path.isdir(root):
+    raise FileNotFoundError(f"{root}: no checkpoints; train this run first (--mode=train)")
+  manager = ckpt_lib.Checkpoints(workdir)
+  try:
+    which, step = _choose_checkpoint(manager, checkpoint)
+    step_dir = os.path.join(root, which, str(step))
+    abstract = abstract_state(model, config, scene)
+    diffs = _parameter_differences(abstract.params, step_dir)
+    if diffs:
+      raise ckpt_lib.CheckpointMismatchError(
+          f"{step_dir}: the checkpoint does not fit the model built from the config (other K, "
+          f"feature width or layout?)" + "".join(f"\n  {d}" for d in diffs))
+    state = manager.restore(abstract, step=step, which=which)
+  finally:
+    manager.close()
+  return state.params, step, step_dir
+
+
+def _warn_other_differences(config, saved: dict) -> None:
+  """Data and render settings may legitimately differ from training (another data root, chunk
+  size); they are reported, not refused. Only the model section must match (check_compatible)."""
+  current = json.loads(config.to_json_best_effort())
+  for section, ignore in (("data", ("root",)), ("render", ("chunk",))):
+    a, b = saved.get(section, {}), current.get(section, {})
+    for k in sorted(set(a) | set(b)):
+      if k not in ignore and json.dumps(a.get(k)) != json.dumps(b.get(k)):
+        logging.warning("%s.%s differs from the training run: saved %r, now %r", section, k,
+                        a.get(k), b.get(k))
+
+
+def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
+             checkpoint: str = "", max_scenes: Optional[int] = None) -> LoadedRun:
+  """Checks `config` against DIR/config.json, resolves and loads the split, restores parameters.
+
+  Raises:
+    EvalSetupError: unknown split or checkpoint name.
+    FileNotFoundError: DIR is not a training run (no config.json or no checkpoint).
+    checkpoints.CheckpointMismatchError: the model config or the parameter shapes differ, naming
+      the fields / parameters.
+    DataError: the split is missing or empty on disk.
+  """
+  from slotlifter_jax import train  # train imports this module for its Validator
+  if split not in registry.SPLITS:
+    raise EvalSetupError(f"--split={split!r}: must be one of {', '.join(registry.SPLITS)}")
+  saved = ckpt_lib.load_saved_config(workdir)
+  if saved is None:
+    raise FileNotFoundError(f"{ckpt_lib.config_path(workdir)}: not found; {workdir} is not a "
+                            f"training run directory (train it first with --mode=train)")
+  ckpt_lib.check_compatible(config, saved, workdir)
+  _warn_other_differences(config, saved)
+  config = train.resolve_data(config)
+  scenes = registry.load_split(config.data, split, max_scenes=max_scenes)
+  # DTU/ScanNet training scenes pool their sources; evaluate them one target at a time, as the
+  # readers already deliver the val and test splits.
+  num_sources = int(config.data.num_source_views)
+  scenes = [t for s in scenes for t in pipeline.per_target_scenes(s, num_source_views=num_sources)]
+  if not scenes:
+    raise DataError(f"{config.data.root}: split {split!r} has no scenes")
+  model = model_lib.build_model(config)
+  params, step, step_dir = restore_params(model, config, workdir, scene=scenes[0],
+                                          checkpoint=checkpoint)
+  return LoadedRun(config=config, model=model, params=params, step=step,
+                   checkpoint_dir=step_dir, scenes=scenes, split=split)
+
+
+# ---------------------------------------------------------------------------------------------
+# The evaluation of a split
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalResult:
+  split: str
+  summary: dict[str, metrics.Summary]  # metric name → mean ± s.e. over scenes
+  per_scene: list[dict[str, float]]
+  scene_names: list[str]
+  checkpoint_step: int
+  checkpoint_dir: str
+  timing: dict[str, float]
+  metrics_path: str
+  per_scene_path: str
+
+
+def _finite_or_none(x: float) -> Optional[float]:
+  return float(x) if x is not None and math.isfinite(x) else None
+
+
+def _atomic_write(path: str, text: str) -> None:
+  os.makedirs(os.path.dirname(path), exist_ok=True)
+  tmp = path + ".tmp"
+  with open(tmp, "w", newline="") as f:
+    f.write(text)
+  os.replace(tmp, path)
+
+
+def _definitions(keys, *, lpips_net: str, lpips_quirk: bool, nv_ari_last_view: bool) -> dict:
+  fill = dict(
+      net={"alex": "AlexNet", "vgg": "VGG"}[lpips_net],
+      quirk="quirk on: fed [0, 1] unchanged, as the official code" if lpips_quirk
+      else "the official code feeds [0, 1]; --lpips_quirk reproduces that",
+      nv_rule="uORF quirk on: the scene's last novel view only" if nv_ari_last_view
+      else "averaged over all novel views of a scene")
+  return {k: METRIC_DEFINITIONS[k].format(**fill) for k in keys}
+
+
+def _ordered(keys) -> list[str]:
+  known = [k for k in METRIC_DEFINITIONS if k in keys]
+  return known + sorted(set(keys) - set(known))
+
+
+def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: str = "test",
+                   checkpoint: str = "", overwrite: bool = False,
+                   max_scenes: Optional[int] = None, lpips_quirk: bool = False,
+                   nv_ari_last_view: bool = False, progress: bool = True) -> EvalResult:
+  """`--mode=eval`: renders every view of every scene of `split` and writes the metrics.
+
+  Writes DIR/eval/<split>/metrics.json (summary, definitions, checkpoint, quirks, timing) and
+  per_scene.csv. Refuses (FileExistsError, before any work) to replace an existing metrics.json
+  unless `overwrite`. See `load_run` for the other errors.
+  """
+  t_start = time.perf_counter()
+  out_dir = os.path.join(workdir, "eval", split)
+  metrics_path = os.path.join(out_dir, "metrics.json")
+  per_scene_path = os.path.join(out_dir, "per_scene.csv")
+  if os.path.exists(metrics_path) and not overwrite:
+    raise FileExistsError(f"{metrics_path} exists; pass --overwrite to replace it")
+  run = load_run(config, workdir, split=split, checkpoint=checkpoint, max_scenes=max_scenes)
+  net = lpips_net_for(run.config)
+  renderer = render_views.SceneRenderer(run.model, run.config)
+  t_setup = time.perf_counter() - t_start
+
+  per_scene, render_s, metric_s = [], [], []
+  for scene in tqdm(run.scenes, desc=f"eval {split}", unit="scene", dynamic_ncols=True,
+                    disable=not progress):
+    t0 = time.perf_counter()
+    views = list(range(scene.num_views))
+    rendered = renderer.render(run.params, scene, views)
+    t1 = time.perf_counter()
+    if not run.config.data.has_masks:
+      scene = dataclasses.replace(scene, masks=None, mask_views=None)
+    per_scene.append(scene_metrics(rendered, scene, views, image_metrics=True, lpips_net=net,
+                                   lpips_quirk=lpips_quirk, nv_ari_last_view=nv_ari_last_view))
+    render_s.append(t1 - t0)
+    metric_s.append(time.perf_counter() - t1)
+
+  keys = _ordered({k for d in per_scene for k in d})
+  summary = {k: metrics.summarize([d.get(k, math.nan) for d in per_scene]) for k in keys}
+  scene_s = np.add(render_s, metric_s)
+  timing = {
+      "total_s": time.perf_counter() - t_start,
+      "setup_s": t_setup,  # config check, data loading, checkpoint restore
+      "scenes_s": float(scene_s.sum()),
+      "per_scene_mean_s": float(scene_s.mean()),
+      # The first scene also compiles the renderer (and LPIPS); the median is the steady rate.
+      "per_scene_median_s": float(np.median(scene_s)),
+      "first_scene_s": float(scene_s[0]),
+      "render_s": float(np.sum(render_s)),
+      "metrics_s": float(np.sum(metric_s)),
+  }
+  names = [s.name for s in run.scenes]
+  result = EvalResult(split=split, summary=summary, per_scene=per_scene, scene_names=names,
+                      checkpoint_step=run.step, checkpoint_dir=run.checkpoint_dir, timing=timing,
+                      metrics_path=metrics_path, per_scene_path=per_scene_path)
+  if jax.process_index() != 0:  # every host evaluates the same scenes; one writes
+    return result
+
+  buf = io.StringIO()
+  writer = csv.writer(buf)
+  writer.writerow(["index", "scene", "num_views"] + keys)
+  for i, (scene, row) in enumerate(zip(run.scenes, per_scene)):
+    writer.writerow([i, scene.name, scene.num_views] +
+                    [repr(float(row.get(k, math.nan))) for k in keys])
+  _atomic_write(per_scene_path, buf.getvalue())
+
+  report = {
+      "split": split,
+      "num_scenes": len(run.scenes),
+      "image_size": list(run.scenes[0].image_size),
+      "data_root": run.config.data.root,
+      "checkpoint": {"step": run.step, "path": run.checkpoint_dir},
+      "quirks": {"lpips_quirk": bool(lpips_quirk), "nv_ari_last_view": bool(nv_ari_last_view)},
+      "lpips_net": net,
+      "metrics": {k: {"mean": _finite_or_none(s.mean), "stderr": _finite_or_none(s.stderr),
+                      "count": s.count, "skipped": s.skipped} for k, s in summary.items()},
+      "definitions": _definitions(keys, lpips_net=net, lpips_quirk=lpips_quirk,
+                                  nv_ari_last_view=nv_ari_last_view),
+      "aggregation": AGGREGATION,
+      "timing": timing,
+      "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+  }
+  _atomic_write(metrics_path, json.dumps(report, indent=2, allow_nan=False) + "\n")
+  return result
+
+
+def format_table(result: EvalResult) -> str:
+  """The means, standard errors and counts as a text table, with the evaluation time."""
+  lines = [f"split {result.split}: {len(result.per_scene)} scenes, checkpoint step "
+           f"{result.checkpoint_step} ({result.checkpoint_dir})",
+           f"{'metric':<14}{'mean':>10}{'s.e.':>10}{'n':>6}"]
+  for k, s in result.summary.items():
+    lines.append(f"{k:<14}{s.mean:>10.4f}{s.stderr:>10.4f}{s.count:>6d}")
+  t = result.timing
+  lines.append(f"time: {t['total_s']:.1f} s in all (setup {t['setup_s']:.1f} s); per scene "
+               f"{t['per_scene_mean_s']:.2f} s mean, {t['per_scene_median_s']:.2f} s median "
+               f"(first {t['first_scene_s']:.1f} s, with compilation)")
+  lines.append(f"wrote {result.metrics_path}\n      {result.per_scene_path}")
+  return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# Validation during training
+# ---------------------------------------------------------------------------------------------
 
 
 class Validator:
@@ -60,7 +488,8 @@ class Validator:
     self.scenes = scenes
     self.workdir = workdir
     self.num_pictures = num_pictures
-    self.has_masks = bool(config.data.has_masks) and all(s.masks is not None for s in scenes)
+    self.use_masks = bool(config.data.has_masks)  # never score made-up masks (SPEC §3.3)
+    self.has_masks = self.use_masks and all(s.masks is not None for s in scenes)
     self.near, self.far = config.render.near, config.render.far
 
   def run(self, params, step: int) -> dict:
@@ -68,16 +497,21 @@ class Validator:
     for n, scene in enumerate(self.scenes):
       views = list(range(scene.num_views))
       rendered = self.renderer.render(params, scene, views)
+      if not self.use_masks:
+        scene = dataclasses.replace(scene, masks=None, mask_views=None)
       per_scene.append(scene_metrics(rendered, scene, views))
       if n < self.num_pictures:
         v = scene.novel_indices[0] if scene.novel_indices else 0
-        row = [scene.images[v], rendered.colour[v], vis.colour_segmentation(rendered.segmentation[v]),
+        row = [scene.images[v], rendered.colour[v],
+               vis.colour_segmentation(rendered.segmentation[v]),
                vis.colour_depth(rendered.depth[v], near=self.near, far=self.far)]
         if scene.masks is not None:
           row.insert(1, vis.colour_labels(scene.masks[v]))
         rows.append(row)
     result = mean_over_scenes(per_scene)
-    result["score"] = result.get("nv_ari", np.nan) if self.has_masks else result.get("psnr_novel", np.nan)
+    # Model selection (SPEC §4): NV-ARI where the set has masks, else novel-view PSNR.
+    score_key = "nv_ari" if self.has_masks else "psnr_novel"
+    result["score"] = result.get(score_key, np.nan)
     if not np.isfinite(result["score"]):
       result["score"] = -1.0
     if rows:

@@ -1,7 +1,13 @@
 """Command line: `python -m slotlifter_jax.main --config=configs/clevr.py[:variant] --workdir=DIR`.
 
-Modes: train (default; resumes from DIR's last checkpoint), eval, render.
+Modes: train (default; resumes from DIR's last checkpoint), eval (metrics of a split into
+DIR/eval/<split>/), render (panels and orbit GIFs of chosen scenes into DIR/render/<split>/).
+  --mode=eval --split=test --checkpoint=best|latest|<step> [--overwrite] [--max_scenes=N]
+              [--lpips_quirk] [--nv_ari_last_view]
+  --mode=render --split=test --scenes=0,3,5 --orbit_frames=24
 """
+
+import sys
 
 from absl import app, flags, logging
 from ml_collections import config_flags
@@ -11,6 +17,17 @@ config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/clevr
 flags.DEFINE_string("workdir", None, "Run directory: checkpoints, metrics, pictures.")
 flags.DEFINE_enum("mode", "train", ["train", "eval", "render"], "What to do.")
 flags.DEFINE_bool("distributed", False, "Call jax.distributed.initialize() (multi-host runs).")
+flags.DEFINE_enum("split", "test", ["train", "val", "test"], "eval/render: which split.")
+flags.DEFINE_string("checkpoint", "", "eval/render: best, latest or a step (default: best if "
+                    "the run has one, else latest).")
+flags.DEFINE_bool("overwrite", False, "eval: replace an existing DIR/eval/<split>/metrics.json.")
+flags.DEFINE_integer("max_scenes", None, "eval: only the first N scenes of the split.")
+flags.DEFINE_bool("lpips_quirk", False, "eval: feed [0, 1] images to LPIPS as the official code "
+                  "does (SPEC §8).")
+flags.DEFINE_bool("nv_ari_last_view", False, "eval: NV-ARI from the last novel view only, as "
+                  "uORF (SPEC §8).")
+flags.DEFINE_string("scenes", "0", "render: comma-separated scene indices into the split.")
+flags.DEFINE_integer("orbit_frames", 24, "render: frames of the orbit GIF (at most 64).")
 flags.mark_flags_as_required(["config", "workdir"])
 FLAGS = flags.FLAGS
 
@@ -36,8 +53,26 @@ def main(argv):
   if FLAGS.mode == "train":
     from slotlifter_jax import train
     train.train_and_evaluate(FLAGS.config, FLAGS.workdir)
-  else:
-    raise app.UsageError(f"--mode={FLAGS.mode} is not implemented yet")
+    return
+  from slotlifter_jax import checkpoints, evaluate, render_mode
+  from slotlifter_jax.data.types import DataError
+  try:
+    if FLAGS.mode == "eval":
+      result = evaluate.evaluate_split(
+          FLAGS.config, FLAGS.workdir, split=FLAGS.split, checkpoint=FLAGS.checkpoint,
+          overwrite=FLAGS.overwrite, max_scenes=FLAGS.max_scenes, lpips_quirk=FLAGS.lpips_quirk,
+          nv_ari_last_view=FLAGS.nv_ari_last_view)
+      print(evaluate.format_table(result))
+    else:
+      for files in render_mode.render_scenes(
+          FLAGS.config, FLAGS.workdir, split=FLAGS.split,
+          scene_indices=render_mode.parse_scene_indices(FLAGS.scenes),
+          checkpoint=FLAGS.checkpoint, num_orbit_frames=FLAGS.orbit_frames):
+        print(f"scene {files.scene_index} ({files.scene_name}): {files.panel}\n  {files.orbit}")
+  except (evaluate.EvalSetupError, checkpoints.CheckpointMismatchError, DataError,
+          FileExistsError, FileNotFoundError) as e:
+    # Expected mistakes get their message, not a traceback.
+    sys.exit(f"error ({type(e).__name__}): {e}")
 
 
 if __name__ == "__main__":

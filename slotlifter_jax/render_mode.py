@@ -1,0 +1,331 @@
+"""`--mode=render`: pictures of chosen scenes of a trained run — a panel per scene and an orbit GIF.
+
+Vocabulary (SPEC): B scenes, R rays, S samples per ray, K slots (K+1 with the empty slot at index
+0), H×W image size, F orbit frames.
+
+DIR/render/<split>/scene_XXXX_panel.png (XXXX = the scene's index in the split) has one row per
+view, columns
+  source | truth | [ground-truth mask] | rendering | depth | segmentation overlay | s0 … s(K−1)
+(the K real slots, the empty slot excluded; s0 is the background slot when the locality constraint
+was on). The overlay blends the slot colours (vis.PALETTE mixed by the soft weights) over the
+rendering; "sk" is what slot k renders alone: the volume rendering with the density of every
+other slot zeroed (σ_k = exp(s_σ)·W_k·ReLU(A_k), SPEC §1.4, whose sum over k is
+the model's σ) and each sample's colour unchanged. No background colour is added (SPEC §1.5), so
+what a slot does not hold is black.
+
+DIR/render/<split>/scene_XXXX_orbit.gif shows rendering | segmentation side by side from F cameras
+circling the world z axis at the source camera's height and horizontal radius, looking at the
+origin (OpenCV cam2world, z up), starting at the source camera. A thin bar under the frames grows
+with the azimuth.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+from typing import Optional, Sequence
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+from PIL import Image, ImageDraw
+from tqdm import tqdm
+
+from slotlifter_jax import decoder as decoder_lib
+from slotlifter_jax import evaluate
+from slotlifter_jax import geometry
+from slotlifter_jax import model as model_lib
+from slotlifter_jax import render
+from slotlifter_jax import vis
+from slotlifter_jax.data import generator
+from slotlifter_jax.data.types import Scene
+
+MAX_ORBIT_FRAMES = 64  # keeps a GIF at 128×128 well under a few MB
+ORBIT_FRAME_MS = 80
+OVERLAY_ALPHA = 0.5  # weight of the segmentation colours over the rendering
+MIN_ORBIT_RADIUS = 1e-6  # a camera on the z axis has no azimuth to orbit
+PAD = 2  # pixels between panel tiles
+HEADER = 12  # pixels of the column-title strip (PIL's default bitmap font is 11 px high)
+BAR = 3  # pixels of the orbit progress bar
+
+
+# ---------------------------------------------------------------------------------------------
+# Per-slot rendering
+# ---------------------------------------------------------------------------------------------
+
+
+@flax.struct.dataclass
+class PointOutputs:
+  """The model's rendering of some rays plus the per-sample values of its last pass."""
+  render: model_lib.RenderOutput
+  colour: jax.Array  # [B, R, S, 3] per-sample colour (the model's range: [0, 1] or [−1, 1])
+  logits: jax.Array  # [B, R, S, K+1] mapping logits A (index 0 = empty slot)
+  log_density_scale: jax.Array  # [] s_σ
+
+
+def _last_pass_names(model: model_lib.SlotLifter) -> tuple[str, str]:
+  """Names of the allocation and colour modules of the last pass (model.py's naming)."""
+  suffix = "_fine" if model.num_fine_samples > 0 else ""
+  return f"allocation{suffix}", f"colour_mlp{suffix}"
+
+
+def point_outputs(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded, *,
+                  sources: dict, ray_origins: jax.Array,
+                  ray_directions: jax.Array) -> PointOutputs:
+  """`model.render_rays` at evaluation, also returning the last pass's per-sample colour and
+  logits (captured from the allocation and colour modules, so nothing is recomputed).
+
+  sources: source_images [B, V, H, W, 3] (in the model's colour range), source_cam_to_world,
+  source_intrinsics; rays [B, R, 3].
+  """
+  alloc_name, colour_name = _last_pass_names(model)
+  def wanted(module, method_name):
+    return method_name == "__call__" and module.name in (alloc_name, colour_name)
+  out, state = model.apply({"params": params}, encoded, **sources, ray_origins=ray_origins,
+                           ray_directions=ray_directions, train=False, method=model.render_rays,
+                           capture_intermediates=wanted, mutable=["intermediates"])
+  captured = state["intermediates"]
+  if alloc_name not in captured or colour_name not in captured:
+    raise KeyError(f"model.py no longer names its last pass {alloc_name!r} / {colour_name!r}; "
+                   f"captured {sorted(captured)}")
+  allocation = captured[alloc_name]["__call__"][0]
+  return PointOutputs(render=out, colour=captured[colour_name]["__call__"][0],
+                      logits=allocation.logits,
+                      log_density_scale=params[alloc_name]["log_density_scale"])
+
+
+def slot_densities(*, logits: jax.Array, log_scale: jax.Array) -> jax.Array:
+  """Each slot's share of the slot-based density: logits [..., K+1] → σ_k [..., K].
+
+  σ_k = exp(s_σ)·W_k·ReLU(A_k), computed by `decoder.slot_density` with W masked to slot k, so
+  Σ_k σ_k is exactly the model's σ (SPEC §1.4).
+  """
+  weights = decoder_lib.point_slot_weights(logits)  # [..., K+1]
+  only = jnp.eye(logits.shape[-1], dtype=weights.dtype)[1:]  # [K, K+1]: slot k alone
+  masked = weights[..., None, :] * only  # [..., K, K+1]
+  return decoder_lib.slot_density(logits=logits[..., None, :], weights=masked,
+                                  log_scale=log_scale)  # [..., K]
+
+
+def render_each_slot(points: PointOutputs, *, far: float,
+                     density_scale: float) -> render.RenderResult:
+  """Volume rendering of every slot alone (module docstring): colour [B, R, K, 3], depth [B, R, K].
+  """
+  sigma = jnp.moveaxis(slot_densities(logits=points.logits, log_scale=points.log_density_scale),
+                       -1, -2)  # [B, R, K, S]
+  z = jnp.broadcast_to(points.render.z[..., None, :], sigma.shape)  # [B, R, K, S]
+  colour = jnp.broadcast_to(points.colour[..., None, :, :],
+                            sigma.shape + points.colour.shape[-1:])  # [B, R, K, S, 3]
+  return render.volume_render(density=sigma, z=z, colour=colour, slot_weights=None, far=far,
+                              density_scale=density_scale)
+
+
+@dataclasses.dataclass(frozen=True)
+class CameraRenders:
+  """Full-resolution renderings of n cameras (NumPy, colours in [0, 1])."""
+  colour: np.ndarray  # [n, H, W, 3]
+  depth: np.ndarray  # [n, H, W]
+  segmentation: np.ndarray  # [n, H, W, K]
+  slot_colour: np.ndarray  # [n, H, W, K, 3] each slot rendered alone
+
+
+class SlotRenderer:
+  """Renders arbitrary cameras of a scene in fixed-size ray chunks, with per-slot renderings."""
+
+  def __init__(self, model: model_lib.SlotLifter, config: ml_collections.ConfigDict):
+    self.signed = config.model.colour_range == "signed"
+    self.chunk = int(config.render.chunk)
+
+    @jax.jit
+    def encode(params, sources):
+      return model.apply({"params": params}, **sources, slot_noise_sigma=0.0, train=False,
+                         method=model.encode)
+
+    @jax.jit
+    def render_chunk(params, encoded, sources, origins, directions):
+      points = point_outputs(model, params, encoded, sources=sources, ray_origins=origins,
+                             ray_directions=directions)
+      final = points.render.fine if points.render.fine is not None else points.render.coarse
+      slots = render_each_slot(points, far=model.far, density_scale=model.density_scale)
+      unit = (lambda c: (c + 1.0) * 0.5) if self.signed else (lambda c: c)
+      return unit(final.colour), final.depth, final.segmentation, unit(slots.colour)
+
+    self._encode, self._render_chunk = encode, render_chunk
+
+  def sources(self, scene: Scene) -> dict:
+    idx = np.asarray(scene.source_indices)
+    images = scene.images[idx][None]  # [1, V, H, W, 3]
+    if self.signed:
+      images = images * 2.0 - 1.0
+    return dict(source_images=jnp.asarray(images),
+                source_cam_to_world=jnp.asarray(scene.cam_to_world[idx][None]),
+                source_intrinsics=jnp.asarray(scene.intrinsics[idx][None]))
+
+  def render(self, params, scene: Scene, *, cam_to_world: np.ndarray,
+             intrinsics: np.ndarray) -> CameraRenders:
+    """cam_to_world [n, 4, 4], intrinsics [n, 3, 3] at the scene's image size."""
+    sources = self.sources(scene)
+    encoded = self._encode(params, sources)
+    height, width = scene.image_size
+    pix = geometry.image_pixels(height, width).reshape(-1, 2)  # [H·W, 2]
+    outs = []
+    for c2w, k in zip(cam_to_world, intrinsics):  # one view at a time bounds memory
+      rays = geometry.pixel_rays(cam_to_world=jnp.asarray(c2w, jnp.float32),
+                                 intrinsics=jnp.asarray(k, jnp.float32), pix=pix)
+      n = height * width
+      pad = (-n) % self.chunk  # the last chunk repeats its last ray, so one compiled shape serves
+      origins = jnp.concatenate([rays.origins, jnp.repeat(rays.origins[-1:], pad, 0)])
+      directions = jnp.concatenate([rays.directions, jnp.repeat(rays.directions[-1:], pad, 0)])
+      parts = [self._render_chunk(params, encoded, sources, origins[None, s:s + self.chunk],
+                                  directions[None, s:s + self.chunk])
+               for s in range(0, n + pad, self.chunk)]
+      outs.append([np.concatenate([np.asarray(p[i][0]) for p in parts])[:n] for i in range(4)])
+    colour, depth, seg, slots = (np.stack([o[i] for o in outs]) for i in range(4))
+    k = seg.shape[-1]
+    return CameraRenders(colour=colour.reshape(-1, height, width, 3),
+                         depth=depth.reshape(-1, height, width),
+                         segmentation=seg.reshape(-1, height, width, k),
+                         slot_colour=slots.reshape(-1, height, width, k, 3))
+
+
+# ---------------------------------------------------------------------------------------------
+# Cameras and pictures
+# ---------------------------------------------------------------------------------------------
+
+
+def orbit_cam_to_world(*, source_cam_to_world: np.ndarray, num_frames: int) -> np.ndarray:
+  """[F, 4, 4] OpenCV cam2world poses circling the world z axis, looking at the origin.
+
+  Every camera has the source camera's height and horizontal distance from the z axis; frame i
+  sits at the source azimuth + 2π·i/F, so frame 0 is at the source camera's position.
+  """
+  eye = np.asarray(source_cam_to_world, np.float64)[:3, 3]
+  radius = math.hypot(eye[0], eye[1])
+  if radius < MIN_ORBIT_RADIUS:
+    raise ValueError(f"source camera at {eye.tolist()} lies on the z axis: no orbit around it")
+  azimuth = math.atan2(eye[1], eye[0]) + 2.0 * np.pi * np.arange(num_frames) / num_frames  # [F]
+  eyes = np.stack([radius * np.cos(azimuth), radius * np.sin(azimuth),
+                   np.full(num_frames, eye[2])], axis=-1)  # [F, 3]
+  return np.stack([generator.look_at_cam_to_world(e) for e in eyes])  # [F, 4, 4]
+
+
+def overlay(*, rendering: np.ndarray, segmentation: np.ndarray) -> np.ndarray:
+  """Slot colours (mixed by the soft weights) blended over the rendering: [..., 3]."""
+  return ((1.0 - OVERLAY_ALPHA) * rendering
+          + OVERLAY_ALPHA * vis.colour_segmentation(segmentation))
+
+
+def _titled(panel: np.ndarray, titles: list[str], tile_width: int) -> np.ndarray:
+  """Adds a white strip with a short title above each column (truncated to the tile width)."""
+  strip = Image.new("RGB", (panel.shape[1], HEADER), (255, 255, 255))
+  draw = ImageDraw.Draw(strip)
+  chars = max(1, tile_width // 6)  # the default bitmap font is about 6 px per character
+  for j, title in enumerate(titles):
+    draw.text((j * (tile_width + PAD) + 1, 0), title[:chars], fill=(0, 0, 0))
+  return np.concatenate([np.asarray(strip, np.float32) / 255.0, panel], axis=0)
+
+
+def scene_panel(scene: Scene, renders: CameraRenders, *, near: float, far: float) -> np.ndarray:
+  """The panel picture (module docstring) of all views of `scene`: [rows·H, cols·W, 3] + titles."""
+  has_masks = scene.masks is not None
+  k = renders.segmentation.shape[-1]
+  rows = []
+  for v in range(scene.num_views):
+    row = [scene.images[scene.source_indices[0]], scene.images[v]]
+    if has_masks:
+      row.append(vis.colour_labels(scene.masks[v]))
+    row += [renders.colour[v], vis.colour_depth(renders.depth[v], near=near, far=far),
+            overlay(rendering=renders.colour[v], segmentation=renders.segmentation[v])]
+    row += [renders.slot_colour[v, :, :, i] for i in range(k)]
+    rows.append(row)
+  titles = ["source", "truth"] + (["mask"] if has_masks else []) + ["render", "depth", "seg"]
+  titles += [f"s{i}" for i in range(k)]
+  return _titled(vis.grid(rows, pad=PAD), titles, scene.image_size[1])
+
+
+def orbit_frames(renders: CameraRenders) -> list[np.ndarray]:
+  """[rendering | segmentation colours] per frame, a progress bar below: [H + BAR, 2W + PAD, 3]."""
+  n, height, width = renders.colour.shape[:3]
+  frames = []
+  for i in range(n):
+    frame = np.ones((height + BAR, 2 * width + PAD, 3), np.float32)
+    frame[:height, :width] = renders.colour[i]
+    frame[:height, width + PAD:] = vis.colour_segmentation(renders.segmentation[i])
+    # Distinct bar lengths also keep PIL from merging two identical consecutive frames.
+    frame[height + 1:, :max(1, (i + 1) * frame.shape[1] // n)] = 0.0
+    frames.append(frame)
+  return frames
+
+
+def save_gif(path: str, frames: Sequence[np.ndarray], *, frame_ms: int = ORBIT_FRAME_MS) -> None:
+  """Writes float [H, W, 3] frames in [0, 1] as a looping GIF (temp file + rename)."""
+  os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
+  images = [Image.fromarray((np.clip(f, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
+            for f in frames]
+  tmp = path + ".tmp.gif"
+  images[0].save(tmp, save_all=True, append_images=images[1:], duration=frame_ms, loop=0)
+  os.replace(tmp, path)
+
+
+# ---------------------------------------------------------------------------------------------
+# The mode
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class RenderedFiles:
+  scene_index: int
+  scene_name: str
+  panel: str
+  orbit: str
+
+
+def parse_scene_indices(text: str) -> list[int]:
+  """'0,3,5' → [0, 3, 5]."""
+  try:
+    indices = [int(t) for t in text.split(",") if t.strip()]
+  except ValueError as e:
+    raise evaluate.EvalSetupError(f"--scenes={text!r}: expected comma-separated scene indices, "
+                                  f"e.g. 0,3,5") from e
+  if not indices or min(indices) < 0:
+    raise evaluate.EvalSetupError(f"--scenes={text!r}: give one or more indices ≥ 0")
+  return indices
+
+
+def render_scenes(config: ml_collections.ConfigDict, workdir: str, *, split: str = "test",
+                  scene_indices: Sequence[int] = (0,), checkpoint: str = "",
+                  num_orbit_frames: int = 24, progress: bool = True) -> list[RenderedFiles]:
+  """`--mode=render`: writes the panel and orbit GIF of each chosen scene (module docstring)."""
+  if not 1 <= num_orbit_frames <= MAX_ORBIT_FRAMES:
+    raise evaluate.EvalSetupError(f"--orbit_frames={num_orbit_frames}: must be in "
+                                  f"[1, {MAX_ORBIT_FRAMES}]")
+  indices = list(scene_indices)
+  run = evaluate.load_run(config, workdir, split=split, checkpoint=checkpoint,
+                          max_scenes=max(indices) + 1)
+  if max(indices) >= len(run.scenes):
+    raise evaluate.EvalSetupError(f"--scenes: index {max(indices)} out of range; split {split!r} "
+                                  f"has {len(run.scenes)} scenes")
+  renderer = SlotRenderer(run.model, run.config)
+  near, far = float(run.config.render.near), float(run.config.render.far)
+  out_dir = os.path.join(workdir, "render", split)
+  written = []
+  for i in tqdm(indices, desc=f"render {split}", unit="scene", disable=not progress):
+    scene = run.scenes[i]
+    if not run.config.data.has_masks:
+      scene = dataclasses.replace(scene, masks=None, mask_views=None)
+    views = renderer.render(run.params, scene, cam_to_world=scene.cam_to_world,
+                            intrinsics=scene.intrinsics)
+    panel = os.path.join(out_dir, f"scene_{i:04d}_panel.png")
+    vis.save_png(panel, scene_panel(scene, views, near=near, far=far))
+    source = scene.source_indices[0]
+    poses = orbit_cam_to_world(source_cam_to_world=scene.cam_to_world[source],
+                               num_frames=num_orbit_frames)
+    intrinsics = np.broadcast_to(scene.intrinsics[source], (len(poses), 3, 3))
+    orbit = renderer.render(run.params, scene, cam_to_world=poses, intrinsics=intrinsics)
+    gif = os.path.join(out_dir, f"scene_{i:04d}_orbit.gif")
+    save_gif(gif, orbit_frames(orbit))
+    written.append(RenderedFiles(scene_index=i, scene_name=scene.name, panel=panel, orbit=gif))
+  return written

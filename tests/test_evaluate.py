@@ -1,0 +1,344 @@
+"""Evaluation and pictures (SPEC §4, §8): per-scene aggregation against sklearn/NumPy references,
+the eval and render modes end to end on a smoke run, and their refusals.
+
+The metric functions themselves (ARI, SSIM, LPIPS, mBO, …) are tested in test_metrics.py; here the
+question is whether the right views reach them and the results are aggregated and written right.
+"""
+
+import csv
+import json
+import math
+import os
+import shutil
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from PIL import Image
+from sklearn.metrics import adjusted_rand_score
+
+from data_fixtures import look_at
+from slotlifter_jax import checkpoints as ckpt_lib
+from slotlifter_jax import decoder as decoder_lib
+from slotlifter_jax import evaluate
+from slotlifter_jax import render
+from slotlifter_jax import render_mode
+from slotlifter_jax import render_views
+from slotlifter_jax import train
+from slotlifter_jax.data import registry
+from slotlifter_jax.data.types import DataError
+from slotlifter_jax.data.types import Scene
+from test_train import load_config
+
+# ---------------------------------------------------------------------------------------------
+# scene_metrics on made-up renderings (no model)
+# ---------------------------------------------------------------------------------------------
+
+H, W, K = 5, 7, 3
+
+
+def _toy_scene(rng):
+  """5 views: 0 source; 1-4 novel; view 2 has no ground-truth mask; view 4 shows no foreground."""
+  n = 5
+  masks = rng.integers(0, 4, size=(n, H, W)).astype(np.int32)
+  masks[4] = 0
+  return Scene(name="toy", images=rng.uniform(size=(n, H, W, 3)).astype(np.float32),
+               cam_to_world=np.broadcast_to(np.eye(4, dtype=np.float32), (n, 4, 4)).copy(),
+               intrinsics=np.broadcast_to(np.eye(3, dtype=np.float32), (n, 3, 3)).copy(),
+               source_indices=(0,), masks=masks,
+               mask_views=np.array([True, True, False, True, True]))
+
+
+def _toy_render(rng, n):
+  seg = rng.uniform(size=(n, H, W, K)).astype(np.float32)
+  return render_views.RenderedViews(
+      colour=rng.uniform(size=(n, H, W, 3)).astype(np.float32),
+      depth=np.zeros((n, H, W), np.float32), segmentation=seg / seg.sum(-1, keepdims=True),
+      slots=np.zeros((K, 2), np.float32), slot_attn=np.zeros((K, 4), np.float32))
+
+
+def _psnr(a, b):
+  return 10 * np.log10(1.0 / np.mean((np.float64(a) - np.float64(b)) ** 2))
+
+
+def _fg_ari(true, pred):
+  fg = true != 0
+  return adjusted_rand_score(true[fg], pred[fg])
+
+
+def test_scene_metrics_splits_views_and_skips_as_the_protocol_says():
+  rng = np.random.default_rng(0)
+  scene = _toy_scene(rng)
+  rendered = _toy_render(rng, scene.num_views)
+  out = evaluate.scene_metrics(rendered, scene, range(scene.num_views))
+  true = scene.masks.reshape(5, -1)
+  pred = np.argmax(rendered.segmentation, -1).reshape(5, -1)
+
+  assert out["psnr_source"] == pytest.approx(_psnr(rendered.colour[0], scene.images[0]))
+  assert out["psnr_novel"] == pytest.approx(
+      np.mean([_psnr(rendered.colour[v], scene.images[v]) for v in (1, 2, 3, 4)]))
+  assert out["ari"] == pytest.approx(adjusted_rand_score(true[0], pred[0]))
+  assert out["fg_ari"] == pytest.approx(_fg_ari(true[0], pred[0]))
+  # View 2 has no mask: left out of every segmentation metric; view 4 has no foreground: left
+  # out of FG-ARI only.
+  assert out["nv_ari"] == pytest.approx(
+      np.mean([adjusted_rand_score(true[v], pred[v]) for v in (1, 3, 4)]))
+  assert out["nv_fg_ari"] == pytest.approx(np.mean([_fg_ari(true[v], pred[v]) for v in (1, 3)]))
+  for k in ("mbo", "miou", "nv_mbo", "nv_miou"):
+    assert 0.0 <= out[k] <= 1.0
+  assert "ssim" not in out and "lpips" not in out  # image_metrics off
+
+  # Active slots: the scene's masked views pooled; a slot counts with ≥ 1 % of the foreground.
+  views = [0, 1, 3, 4]
+  t, p = true[views].ravel(), pred[views].ravel()
+  owned = np.array([np.sum((t != 0) & (p == k)) for k in range(K)])
+  assert out["active_slots"] == np.sum((owned > 0) & (owned >= 0.01 * np.sum(t != 0)))
+  assert out["num_objects"] == len(set(t[t != 0].tolist()))
+  assert out["slot_excess"] == out["active_slots"] - out["num_objects"]
+
+
+def test_scene_metrics_quirk_and_missing_masks():
+  rng = np.random.default_rng(1)
+  scene = _toy_scene(rng)
+  rendered = _toy_render(rng, scene.num_views)
+  true = scene.masks.reshape(5, -1)
+  pred = np.argmax(rendered.segmentation, -1).reshape(5, -1)
+  quirk = evaluate.scene_metrics(rendered, scene, range(5), nv_ari_last_view=True)
+  assert quirk["nv_ari"] == pytest.approx(adjusted_rand_score(true[4], pred[4]))
+  assert math.isnan(quirk["nv_fg_ari"])  # the last novel view has no foreground
+  plain = evaluate.scene_metrics(rendered, scene, range(5))
+  assert quirk["nv_mbo"] == plain["nv_mbo"]  # the uORF rule is for NV-ARI only
+
+  no_masks = evaluate.scene_metrics(rendered, Scene(**{**scene.__dict__, "masks": None,
+                                                        "mask_views": None}), range(5))
+  assert set(no_masks) == {"psnr_source", "psnr_novel"}
+
+
+def test_mean_over_scenes_skips_nan():
+  got = evaluate.mean_over_scenes([{"a": 1.0, "b": math.nan}, {"a": 3.0}, {"a": 5.0, "b": 2.0}])
+  assert got["a"] == 3.0 and got["b"] == 2.0
+
+
+def test_lpips_network_by_data_set():
+  assert evaluate.lpips_net_for(load_config("clevr")) == "alex"
+  assert evaluate.lpips_net_for(load_config("dtu")) == "vgg"
+  assert evaluate.lpips_net_for(load_config("scannet")) == "vgg"
+
+
+# ---------------------------------------------------------------------------------------------
+# Orbit cameras and per-slot densities (pure functions)
+# ---------------------------------------------------------------------------------------------
+
+
+def test_orbit_circles_z_axis_looking_at_origin():
+  source = look_at([3.0, -5.0, 4.0])  # the test fixtures' own look-at, not the library's
+  poses = render_mode.orbit_cam_to_world(source_cam_to_world=source, num_frames=7)
+  assert poses.shape == (7, 4, 4)
+  np.testing.assert_allclose(poses[0], source, atol=1e-9)
+  eyes = poses[:, :3, 3]
+  np.testing.assert_allclose(eyes[:, 2], 4.0, atol=1e-9)
+  np.testing.assert_allclose(np.hypot(eyes[:, 0], eyes[:, 1]), math.hypot(3.0, -5.0), atol=1e-9)
+  azimuth = np.unwrap(np.arctan2(eyes[:, 1], eyes[:, 0]))
+  np.testing.assert_allclose(np.diff(azimuth), 2 * np.pi / 7, atol=1e-9)
+  for pose in poses:
+    rot = pose[:3, :3]
+    np.testing.assert_allclose(rot.T @ rot, np.eye(3), atol=1e-9)
+    assert np.linalg.det(rot) == pytest.approx(1.0)
+    origin_cam = np.linalg.inv(pose) @ np.array([0.0, 0.0, 0.0, 1.0])
+    np.testing.assert_allclose(origin_cam[:2], 0.0, atol=1e-9)  # on the optical axis
+    assert origin_cam[2] > 0  # in front of the camera
+    assert rot[2, 1] < 0  # the camera's y (down) points against world z (up)
+
+
+def test_slot_densities_sum_to_the_model_density():
+  rng = np.random.default_rng(2)
+  logits = jnp.asarray(rng.normal(size=(2, 7, 11, 6)).astype(np.float32))  # [B, R, S, K+1]
+  log_scale = jnp.float32(0.3)
+  per_slot = render_mode.slot_densities(logits=logits, log_scale=log_scale)
+  assert per_slot.shape == (2, 7, 11, 5)
+  a = np.asarray(logits, np.float64)
+  w = np.exp(a - a.max(-1, keepdims=True))
+  w /= w.sum(-1, keepdims=True)
+  np.testing.assert_allclose(per_slot, np.exp(0.3) * w[..., 1:] * np.maximum(a[..., 1:], 0),
+                             rtol=1e-5, atol=1e-7)
+  total = decoder_lib.slot_density(logits=logits, weights=decoder_lib.point_slot_weights(logits),
+                                   log_scale=log_scale)
+  np.testing.assert_allclose(per_slot.sum(-1), total, rtol=1e-5, atol=1e-7)
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end on a smoke run (one training shared by the tests below)
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+  workdir = str(tmp_path_factory.mktemp("eval_run"))
+  train.train_and_evaluate(load_config(), workdir)
+  return workdir
+
+
+@pytest.mark.slow
+def test_eval_writes_metrics_and_refuses_to_overwrite(run_dir):
+  config = load_config()
+  result = evaluate.evaluate_split(config, run_dir, split="test", progress=False)
+  path = os.path.join(run_dir, "eval", "test", "metrics.json")
+  assert result.metrics_path == path
+  with open(path) as f:
+    report = json.load(f)
+
+  # The best checkpoint, as the orbax folder names it.
+  best_steps = [int(s) for s in os.listdir(os.path.join(run_dir, "checkpoints", "best"))
+                if s.isdigit()]
+  assert report["checkpoint"]["step"] == max(best_steps)
+  num_scenes = config.data.num_test_scenes
+  assert report["num_scenes"] == num_scenes
+  assert report["quirks"] == {"lpips_quirk": False, "nv_ari_last_view": False}
+  assert report["lpips_net"] == "alex"
+  ranges = {"psnr_source": (0, 100), "psnr_novel": (0, 100), "ssim": (-1, 1), "lpips": (0, 2),
+            "ari": (-1, 1), "fg_ari": (-1, 1), "nv_ari": (-1, 1), "nv_fg_ari": (-1, 1),
+            "mbo": (0, 1), "miou": (0, 1), "nv_mbo": (0, 1), "nv_miou": (0, 1),
+            "active_slots": (0, config.model.num_slots), "num_objects": (1, 7)}
+  for name, (lo, hi) in ranges.items():
+    m = report["metrics"][name]
+    assert m["count"] == num_scenes, name
+    assert lo <= m["mean"] <= hi and math.isfinite(m["stderr"]), (name, m)
+    assert name in report["definitions"]
+  assert report["timing"]["total_s"] > 0
+
+  with open(os.path.join(run_dir, "eval", "test", "per_scene.csv")) as f:
+    rows = list(csv.DictReader(f))
+  scenes = registry.load_split(train.resolve_data(load_config()).data, "test")
+  assert [r["scene"] for r in rows] == [s.name for s in scenes]
+  for name in ranges:  # the JSON means are the means of the CSV rows
+    assert report["metrics"][name]["mean"] == pytest.approx(
+        np.mean([float(r[name]) for r in rows]))
+
+  with open(path, "rb") as f:
+    before = f.read()
+  mtime = os.stat(path).st_mtime_ns
+  with pytest.raises(FileExistsError, match="--overwrite"):
+    evaluate.evaluate_split(config, run_dir, split="test", progress=False)
+  with open(path, "rb") as f:
+    assert f.read() == before
+  assert os.stat(path).st_mtime_ns == mtime
+
+  evaluate.evaluate_split(config, run_dir, split="test", overwrite=True, max_scenes=1,
+                          checkpoint="latest", lpips_quirk=True, nv_ari_last_view=True,
+                          progress=False)
+  with open(path) as f:
+    again = json.load(f)
+  assert again["num_scenes"] == 1 and again["metrics"]["nv_ari"]["count"] == 1
+  assert again["quirks"] == {"lpips_quirk": True, "nv_ari_last_view": True}
+  assert again["checkpoint"]["step"] == config.train.num_steps
+  assert "last novel view" in again["definitions"]["nv_ari"]
+  with open(os.path.join(run_dir, "eval", "test", "per_scene.csv")) as f:
+    assert len(list(csv.DictReader(f))) == 1
+
+
+@pytest.mark.slow
+def test_eval_refuses_other_model_config(run_dir):
+  config = load_config()
+  config.model.num_slots = 5
+  with pytest.raises(ckpt_lib.CheckpointMismatchError, match="model.num_slots"):
+    evaluate.evaluate_split(config, run_dir, split="val", progress=False)
+
+
+@pytest.mark.slow
+def test_checkpoint_of_other_shapes_names_the_parameter(run_dir, tmp_path):
+  # A run whose config.json was edited after training: the config check passes, the checkpoint
+  # does not fit; the error names a slot-shaped parameter instead of an orbax traceback.
+  copy = str(tmp_path / "edited")
+  shutil.copytree(run_dir, copy)
+  config = load_config()
+  config.model.num_slots = 5
+  saved = ckpt_lib.load_saved_config(copy)
+  saved["model"]["num_slots"] = 5
+  with open(ckpt_lib.config_path(copy), "w") as f:
+    json.dump(saved, f)
+  k, d = load_config().model.num_slots, config.model.slot_dim
+  with pytest.raises(ckpt_lib.CheckpointMismatchError,
+                     match=rf"checkpoint \({k}, {d}\), model \(5, {d}\)"):
+    evaluate.evaluate_split(config, copy, split="val", progress=False)
+
+
+@pytest.mark.slow
+def test_eval_refuses_unknown_split_checkpoint_and_empty_folder(run_dir, tmp_path):
+  config = load_config()
+  with pytest.raises(evaluate.EvalSetupError, match="holdout"):
+    evaluate.evaluate_split(config, run_dir, split="holdout", progress=False)
+  with pytest.raises(evaluate.EvalSetupError, match="no such step"):
+    evaluate.evaluate_split(config, run_dir, split="val", checkpoint="12345", progress=False)
+  with pytest.raises(FileNotFoundError, match="config.json"):
+    evaluate.evaluate_split(config, str(tmp_path / "never_trained"), progress=False)
+  empty = tmp_path / "empty_data"
+  (empty / f"{config.data.subset}_test").mkdir(parents=True)
+  config.data.root = str(empty)
+  with pytest.raises(DataError):  # overwrite: the other test may have written test/metrics.json
+    evaluate.evaluate_split(config, run_dir, split="test", overwrite=True, progress=False)
+
+
+@pytest.mark.slow
+def test_per_slot_rendering_is_consistent_with_the_model(run_dir):
+  run = evaluate.load_run(load_config(), run_dir, split="test", max_scenes=1)
+  scene, model = run.scenes[0], run.model
+  sources = render_mode.SlotRenderer(model, run.config).sources(scene)
+  rng = np.random.default_rng(3)
+  centre = np.asarray(scene.cam_to_world[1, :3, 3])  # rays from a novel camera towards the scene
+  dirs = -centre + rng.normal(scale=0.2, size=(1, 13, 3))
+  dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
+
+  @jax.jit  # compiled: a quarter of the time of running the model op by op
+  def point_outputs(params):
+    encoded = model.apply({"params": params}, **sources, train=False, method=model.encode)
+    return render_mode.point_outputs(
+        model, params, encoded, sources=sources,
+        ray_origins=jnp.asarray(np.broadcast_to(centre, (1, 13, 3)), jnp.float32),
+        ray_directions=jnp.asarray(dirs, jnp.float32))
+
+  points = point_outputs(run.params)
+  out = points.render
+  # The captured per-sample colour and density are what the model composited.
+  again = render.volume_render(density=out.density, z=out.z, colour=points.colour,
+                               slot_weights=out.point_slot_weights, far=model.far,
+                               density_scale=model.density_scale)
+  np.testing.assert_allclose(again.colour, out.coarse.colour, atol=1e-6)
+  per_slot = render_mode.slot_densities(logits=points.logits, log_scale=points.log_density_scale)
+  np.testing.assert_allclose(per_slot.sum(-1), out.density, rtol=1e-5, atol=1e-6)
+  alone = render_mode.render_each_slot(points, far=model.far, density_scale=model.density_scale)
+  assert alone.colour.shape == (1, 13, model.num_slots, 3)
+  # A slot alone is never more opaque than all slots together.
+  assert np.all(np.asarray(alone.opacity) <= np.asarray(out.coarse.opacity)[..., None] + 1e-6)
+
+
+@pytest.mark.slow
+def test_render_mode_writes_panel_and_orbit(run_dir):
+  config = load_config()
+  frames = 5
+  files = render_mode.render_scenes(config, run_dir, split="test", scene_indices=[1],
+                                    num_orbit_frames=frames, progress=False)
+  assert [f.scene_index for f in files] == [1]
+  assert files[0].panel.endswith(os.path.join("render", "test", "scene_0001_panel.png"))
+  s, k, views = config.data.image_size, config.model.num_slots, config.data.views_per_scene
+  pad = render_mode.PAD
+  columns = 6 + k  # source, truth, mask, rendering, depth, overlay, one per slot
+  panel = np.asarray(Image.open(files[0].panel).convert("RGB"), np.float32) / 255.0
+  assert panel.shape == (render_mode.HEADER + views * (s + pad) - pad,
+                         columns * (s + pad) - pad, 3)
+  gif = Image.open(files[0].orbit)
+  assert gif.n_frames == frames
+  assert gif.size == (2 * s + pad, s + render_mode.BAR)
+  # Frame 0 is taken from the source camera, so its rendering is the panel's source-view
+  # rendering (row 0, column 3), up to the GIF's 256-colour palette.
+  gif.seek(0)
+  frame = np.asarray(gif.convert("RGB"), np.float32)[:s, :s] / 255.0
+  top = render_mode.HEADER
+  tile = panel[top:top + s, 3 * (s + pad):3 * (s + pad) + s]
+  assert np.mean(np.abs(frame - tile)) < 0.03
+
+  with pytest.raises(evaluate.EvalSetupError, match="out of range"):
+    render_mode.render_scenes(config, run_dir, split="test", scene_indices=[99], progress=False)
+  with pytest.raises(evaluate.EvalSetupError, match="orbit_frames"):
+    render_mode.render_scenes(config, run_dir, scene_indices=[0], num_orbit_frames=65,
+                              progress=False)
