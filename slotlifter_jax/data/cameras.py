@@ -33,17 +33,23 @@ UORF_FOCAL_RATIO = (350.0 / 320.0, 350.0 / 240.0)  # (fx / W, fy / H)
 OFFICIAL_FRUSTUM = 256.0
 
 
-def read_matrix(path: str, *, shape: tuple[int, int]) -> np.ndarray:
-  """A whitespace-separated text matrix of the given shape, float64, finite."""
+def load_text_matrix(path: str, *, shapes: tuple[tuple[int, int], ...]) -> np.ndarray:
+  """A whitespace-separated text matrix whose shape is one of `shapes`, float64 (may be non-finite)."""
   if not os.path.isfile(path):
     raise DataError(f"{path}: file does not exist")
   try:
     matrix = np.loadtxt(path, dtype=np.float64, ndmin=2)
   except ValueError as e:
     raise DataError(f"{path}: not a numeric text matrix ({e})") from e
-  if matrix.shape != shape:
-    raise DataError(f"{path}: expected a {shape[0]}×{shape[1]} matrix, found shape "
-                    f"{matrix.shape}")
+  if matrix.shape not in shapes:
+    expected = " or ".join(f"{a}×{b}" for a, b in shapes)
+    raise DataError(f"{path}: expected a {expected} matrix, found shape {matrix.shape}")
+  return matrix
+
+
+def read_matrix(path: str, *, shape: tuple[int, int]) -> np.ndarray:
+  """A whitespace-separated text matrix of the given shape, float64, finite."""
+  matrix = load_text_matrix(path, shapes=(shape,))
   if not np.all(np.isfinite(matrix)):
     raise DataError(f"{path}: matrix has non-finite entries")
   return matrix
@@ -100,15 +106,7 @@ def uorf_intrinsics(*, height: int, width: int,
 
 def read_normalised_intrinsics(path: str) -> np.ndarray:
   """A uOCF `_intrinsics.txt` (3×3, or 4×4 whose top-left 3×3 is used), validated, float64."""
-  if not os.path.isfile(path):
-    raise DataError(f"{path}: file does not exist")
-  try:
-    matrix = np.loadtxt(path, dtype=np.float64, ndmin=2)
-  except ValueError as e:
-    raise DataError(f"{path}: not a numeric text matrix ({e})") from e
-  if matrix.shape not in ((3, 3), (4, 4)):
-    raise DataError(f"{path}: expected a 3×3 (or 4×4) normalised K, found shape {matrix.shape}")
-  k = matrix[:3, :3]
+  k = load_text_matrix(path, shapes=((3, 3), (4, 4)))[:3, :3]
   if not np.all(np.isfinite(k)):
     raise DataError(f"{path}: intrinsics have non-finite entries")
   if k[0, 0] <= 0 or k[1, 1] <= 0 or np.any(k[2] != np.array([0.0, 0.0, 1.0])) or k[1, 0] != 0:

@@ -106,14 +106,7 @@ def _all_frames(scene_dir: str) -> list[str]:
 
 def _read_pose_or_none(path: str) -> Optional[np.ndarray]:
   """The frame's cam2world, or None (with a warning) when it has non-finite values."""
-  if not os.path.isfile(path):
-    raise DataError(f"{path}: pose file does not exist")
-  try:
-    pose = np.loadtxt(path, dtype=np.float64, ndmin=2)
-  except ValueError as e:
-    raise DataError(f"{path}: not a numeric text matrix ({e})") from e
-  if pose.shape != (4, 4):
-    raise DataError(f"{path}: expected a 4×4 matrix, found shape {pose.shape}")
+  pose = cameras.load_text_matrix(path, shapes=((4, 4),))
   if not np.all(np.isfinite(pose)):
     logging.warning("%s: pose has non-finite values (lost tracking); frame skipped", path)
     return None
