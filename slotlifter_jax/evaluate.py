@@ -41,6 +41,7 @@ from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import metrics
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import render_views
+from slotlifter_jax import schedules
 from slotlifter_jax import train_step as step_lib
 from slotlifter_jax import vis
 from slotlifter_jax.data import pipeline
@@ -491,12 +492,15 @@ class Validator:
     self.use_masks = bool(config.data.has_masks)  # never score made-up masks (SPEC §3.3)
     self.has_masks = self.use_masks and all(s.masks is not None for s in scenes)
     self.near, self.far = config.render.near, config.render.far
+    self.locality_steps = int(config.train.locality_steps)
 
   def run(self, params, step: int) -> dict:
+    # `step` updates have been applied, so the next training step is `step`.
+    locality = bool(schedules.locality_on(step, steps=self.locality_steps))
     per_scene, rows = [], []
     for n, scene in enumerate(self.scenes):
       views = list(range(scene.num_views))
-      rendered = self.renderer.render(params, scene, views)
+      rendered = self.renderer.render(params, scene, views, locality=locality)
       if not self.use_masks:
         scene = dataclasses.replace(scene, masks=None, mask_views=None)
       per_scene.append(scene_metrics(rendered, scene, views))

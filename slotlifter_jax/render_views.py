@@ -41,9 +41,9 @@ class SceneRenderer:
                          method=model.encode)
 
     @jax.jit
-    def render_chunk(params, encoded, sources, origins, directions):
+    def render_chunk(params, encoded, sources, origins, directions, locality):
       out = model.apply({"params": params}, encoded, **sources, ray_origins=origins,
-                        ray_directions=directions, keep_ratio=1.0, locality=False, train=False,
+                        ray_directions=directions, keep_ratio=1.0, locality=locality, train=False,
                         method=model.render_rays)
       final = out.fine if out.fine is not None else out.coarse
       colour = (final.colour + 1.0) * 0.5 if self.signed else final.colour
@@ -60,7 +60,10 @@ class SceneRenderer:
                 source_cam_to_world=jnp.asarray(scene.cam_to_world[idx][None]),
                 source_intrinsics=jnp.asarray(scene.intrinsics[idx][None]))
 
-  def render(self, params, scene: Scene, view_indices, *, source_indices=None) -> RenderedViews:
+  def render(self, params, scene: Scene, view_indices, *, source_indices=None,
+             locality: bool = False) -> RenderedViews:
+    """`locality`: apply the locality constraint (SPEC §1.4), as training does before its switch-off
+    step, so a validation picture shows the function that is being trained."""
     sources = self.sources(scene, source_indices)
     encoded = self._encode(params, sources)
     height, width = scene.image_size
@@ -78,7 +81,7 @@ class SceneRenderer:
       for start in range(0, n + pad, self.chunk):
         sl = slice(start, start + self.chunk)
         parts.append(self._render_chunk(params, encoded, sources, origins[None, sl],
-                                        directions[None, sl]))
+                                        directions[None, sl], jnp.asarray(locality)))
       c, d, s = (np.concatenate([np.asarray(p[i][0]) for p in parts])[:n] for i in range(3))
       colours.append(c.reshape(height, width, -1))
       depths.append(d.reshape(height, width))
