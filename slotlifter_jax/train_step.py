@@ -99,15 +99,9 @@ def _tree_all_finite(tree) -> jax.Array:
   return jnp.all(jnp.stack(leaves))
 
 
-def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) -> Callable:
-  """Returns step(state, batch) -> (state, metrics), compiled once, state donated.
-
-  `key` is the run's base key; the step's keys are fold_in(key, step). With a mesh, the batch is
-  sharded over its scene axis along mesh axis 'data' and the state is replicated.
-  """
-  tx = make_optimizer(config.train)
+def make_grad_fn(model, config) -> Callable:
+  """grad_fn(params, batch, key, sched) -> ((loss, aux), grads) of one (chunk of a) batch."""
   signed = config.model.colour_range == "signed"
-  chunks = config.train.grad_accum_chunks
 
   def loss_fn(params, batch, step_key, sched):
     rngs = {s: jax.random.fold_in(step_key, i) for i, s in enumerate(RNG_STREAMS)}
@@ -125,7 +119,18 @@ def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) 
       loss = 0.5 * (mse_coarse + mse_final)
     return loss, dict(mse_coarse=mse_coarse, mse=mse_final)
 
-  grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
+  return jax.value_and_grad(loss_fn, has_aux=True)
+
+
+def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) -> Callable:
+  """Returns step(state, batch) -> (state, metrics), compiled once, state donated.
+
+  `key` is the run's base key; the step's keys are fold_in(key, step). With a mesh, the batch is
+  sharded over its scene axis along mesh axis 'data' and the state is replicated.
+  """
+  tx = make_optimizer(config.train)
+  chunks = config.train.grad_accum_chunks
+  grad_fn = make_grad_fn(model, config)
 
   def grads_over_chunks(params, batch, step_key, sched):
     if chunks == 1:
