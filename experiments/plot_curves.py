@@ -1,6 +1,6 @@
-"""Learning curves of a run: `python experiments/plot_curves.py RUN_DIR [OUT.png]`.
+"""Learning curves of a run: `python experiments/plot_curves.py RUN_DIR|METRICS.jsonl [OUT.png]`.
 
-Reads RUN_DIR/metrics.jsonl (written by training) and draws train loss/PSNR with the schedules
+Reads RUN_DIR/metrics.jsonl (written by training), or a copied metrics file and draws train loss/PSNR with the schedules
 (keep ratio, slot noise, locality) and the validation PSNR / ARI / FG-ARI / NV-ARI over steps.
 Default output: RUN_DIR/curves.png.
 """
@@ -17,7 +17,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 def read_metrics(run_dir: str) -> tuple[list[dict], list[dict]]:
   train, val = [], []
-  with open(os.path.join(run_dir, "metrics.jsonl")) as f:
+  path = run_dir if os.path.isfile(run_dir) else os.path.join(run_dir, "metrics.jsonl")
+  with open(path) as f:
     for line in f:
       row = json.loads(line)
       (train if row["kind"] == "train" else val).append(row)
@@ -56,4 +57,5 @@ def plot(run_dir: str, out: str) -> None:
 
 if __name__ == "__main__":
   run = sys.argv[1]
-  plot(run, sys.argv[2] if len(sys.argv) > 2 else os.path.join(run, "curves.png"))
+  default = os.path.splitext(run)[0] + ".png" if os.path.isfile(run) else os.path.join(run, "curves.png")
+  plot(run, sys.argv[2] if len(sys.argv) > 2 else default)
