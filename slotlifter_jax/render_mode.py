@@ -36,9 +36,9 @@ from tqdm import tqdm
 
 from slotlifter_jax import decoder as decoder_lib
 from slotlifter_jax import evaluate
-from slotlifter_jax import geometry
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import render
+from slotlifter_jax import render_views
 from slotlifter_jax import vis
 from slotlifter_jax.data import generator
 from slotlifter_jax.data.types import Scene
@@ -140,11 +140,6 @@ class SlotRenderer:
     self.chunk = int(config.render.chunk)
 
     @jax.jit
-    def encode(params, sources):
-      return model.apply({"params": params}, **sources, slot_noise_sigma=0.0, train=False,
-                         method=model.encode)
-
-    @jax.jit
     def render_chunk(params, encoded, sources, origins, directions):
       points = point_outputs(model, params, encoded, sources=sources, ray_origins=origins,
                              ray_directions=directions)
@@ -153,16 +148,10 @@ class SlotRenderer:
       unit = (lambda c: (c + 1.0) * 0.5) if self.signed else (lambda c: c)
       return unit(final.colour), final.depth, final.segmentation, unit(slots.colour)
 
-    self._encode, self._render_chunk = encode, render_chunk
+    self._encode, self._render_chunk = render_views.make_encode(model), render_chunk
 
   def sources(self, scene: Scene) -> dict:
-    idx = np.asarray(scene.source_indices)
-    images = scene.images[idx][None]  # [1, V, H, W, 3]
-    if self.signed:
-      images = images * 2.0 - 1.0
-    return dict(source_images=jnp.asarray(images),
-                source_cam_to_world=jnp.asarray(scene.cam_to_world[idx][None]),
-                source_intrinsics=jnp.asarray(scene.intrinsics[idx][None]))
+    return render_views.scene_sources(scene, signed=self.signed)
 
   def render(self, params, scene: Scene, *, cam_to_world: np.ndarray,
              intrinsics: np.ndarray) -> CameraRenders:
@@ -170,20 +159,10 @@ class SlotRenderer:
     sources = self.sources(scene)
     encoded = self._encode(params, sources)
     height, width = scene.image_size
-    pix = geometry.image_pixels(height, width).reshape(-1, 2)  # [H·W, 2]
-    outs = []
-    for c2w, k in zip(cam_to_world, intrinsics):  # one view at a time bounds memory
-      rays = geometry.pixel_rays(cam_to_world=jnp.asarray(c2w, jnp.float32),
-                                 intrinsics=jnp.asarray(k, jnp.float32), pix=pix)
-      n = height * width
-      pad = (-n) % self.chunk  # the last chunk repeats its last ray, so one compiled shape serves
-      origins = jnp.concatenate([rays.origins, jnp.repeat(rays.origins[-1:], pad, 0)])
-      directions = jnp.concatenate([rays.directions, jnp.repeat(rays.directions[-1:], pad, 0)])
-      parts = [self._render_chunk(params, encoded, sources, origins[None, s:s + self.chunk],
-                                  directions[None, s:s + self.chunk])
-               for s in range(0, n + pad, self.chunk)]
-      outs.append([np.concatenate([np.asarray(p[i][0]) for p in parts])[:n] for i in range(4)])
-    colour, depth, seg, slots = (np.stack([o[i] for o in outs]) for i in range(4))
+    colour, depth, seg, slots = render_views.render_cameras(
+        lambda o, d: self._render_chunk(params, encoded, sources, o, d),
+        cam_to_world=cam_to_world, intrinsics=intrinsics, height=height, width=width,
+        chunk=self.chunk)
     k = seg.shape[-1]
     return CameraRenders(colour=colour.reshape(-1, height, width, 3),
                          depth=depth.reshape(-1, height, width),

@@ -6,8 +6,6 @@ chunks of fixed size (the last chunk padded), so one compiled function serves ev
 
 from __future__ import annotations
 
-import functools
-
 import flax.struct
 import jax
 import jax.numpy as jnp
@@ -26,6 +24,47 @@ class RenderedViews:
   slot_attn: np.ndarray  # [K, V·h·w]
 
 
+def scene_sources(scene: Scene, *, signed: bool, source_indices=None) -> dict:
+  """The model's source inputs for one scene (batch of 1); DTU/ScanNet models see [−1, 1] images."""
+  idx = np.asarray(scene.source_indices if source_indices is None else source_indices)
+  images = scene.images[idx][None]  # [1, V, H, W, 3]
+  if signed:
+    images = images * 2.0 - 1.0
+  return dict(source_images=jnp.asarray(images),
+              source_cam_to_world=jnp.asarray(scene.cam_to_world[idx][None]),
+              source_intrinsics=jnp.asarray(scene.intrinsics[idx][None]))
+
+
+def make_encode(model):
+  """encode(params, sources) -> Encoded, jitted, evaluation mode (no slot noise)."""
+  return jax.jit(lambda params, sources: model.apply(
+      {"params": params}, **sources, slot_noise_sigma=0.0, train=False, method=model.encode))
+
+
+def render_cameras(render_chunk, *, cam_to_world, intrinsics, height: int, width: int,
+                   chunk: int) -> list[np.ndarray]:
+  """Every pixel of each camera through `render_chunk(origins [1, chunk, 3], directions)`.
+
+  `render_chunk` returns a tuple of [1, chunk, ...] arrays; the result holds, per tuple entry, an
+  array [n, H·W, ...]. The last chunk repeats its last ray, so one compiled shape serves any size,
+  and cameras go one at a time to bound memory.
+  """
+  pix = geometry.image_pixels(height, width).reshape(-1, 2)  # [H·W, 2]
+  n = height * width
+  pad = (-n) % chunk
+  per_camera = []
+  for c2w, k in zip(cam_to_world, intrinsics):
+    rays = geometry.pixel_rays(cam_to_world=jnp.asarray(c2w, jnp.float32),
+                               intrinsics=jnp.asarray(k, jnp.float32), pix=pix)
+    origins = jnp.concatenate([rays.origins, jnp.repeat(rays.origins[-1:], pad, 0)])
+    directions = jnp.concatenate([rays.directions, jnp.repeat(rays.directions[-1:], pad, 0)])
+    parts = [render_chunk(origins[None, s:s + chunk], directions[None, s:s + chunk])
+             for s in range(0, n + pad, chunk)]
+    per_camera.append([np.concatenate([np.asarray(p[i][0]) for p in parts])[:n]
+                       for i in range(len(parts[0]))])
+  return [np.stack([c[i] for c in per_camera]) for i in range(len(per_camera[0]))]
+
+
 class SceneRenderer:
   """Renders chosen views of a Scene at full resolution with fixed-size ray chunks."""
 
@@ -36,11 +75,6 @@ class SceneRenderer:
     self.num_source_views = int(config.data.num_source_views)
 
     @jax.jit
-    def encode(params, sources):
-      return model.apply({"params": params}, **sources, slot_noise_sigma=0.0, train=False,
-                         method=model.encode)
-
-    @jax.jit
     def render_chunk(params, encoded, sources, origins, directions, locality):
       out = model.apply({"params": params}, encoded, **sources, ray_origins=origins,
                         ray_directions=directions, keep_ratio=1.0, locality=locality, train=False,
@@ -49,16 +83,10 @@ class SceneRenderer:
       colour = (final.colour + 1.0) * 0.5 if self.signed else final.colour
       return colour, final.depth, final.segmentation
 
-    self._encode, self._render_chunk = encode, render_chunk
+    self._encode, self._render_chunk = make_encode(model), render_chunk
 
   def sources(self, scene: Scene, source_indices=None) -> dict:
-    idx = np.asarray(scene.source_indices if source_indices is None else source_indices)
-    images = scene.images[idx][None]  # [1, V, H, W, 3]
-    if self.signed:
-      images = images * 2.0 - 1.0
-    return dict(source_images=jnp.asarray(images),
-                source_cam_to_world=jnp.asarray(scene.cam_to_world[idx][None]),
-                source_intrinsics=jnp.asarray(scene.intrinsics[idx][None]))
+    return scene_sources(scene, signed=self.signed, source_indices=source_indices)
 
   def render(self, params, scene: Scene, view_indices, *, source_indices=None,
              locality: bool = False) -> RenderedViews:
@@ -67,25 +95,13 @@ class SceneRenderer:
     sources = self.sources(scene, source_indices)
     encoded = self._encode(params, sources)
     height, width = scene.image_size
-    pix = np.asarray(geometry.image_pixels(height, width)).reshape(-1, 2)  # [H·W, 2]
-    colours, depths, segs = [], [], []
-    for v in view_indices:
-      rays = geometry.pixel_rays(cam_to_world=jnp.asarray(scene.cam_to_world[v]),
-                                 intrinsics=jnp.asarray(scene.intrinsics[v]), pix=jnp.asarray(pix))
-      origins, directions = np.asarray(rays.origins), np.asarray(rays.directions)
-      n = origins.shape[0]
-      pad = (-n) % self.chunk
-      origins = np.concatenate([origins, np.repeat(origins[-1:], pad, 0)])
-      directions = np.concatenate([directions, np.repeat(directions[-1:], pad, 0)])
-      parts = []
-      for start in range(0, n + pad, self.chunk):
-        sl = slice(start, start + self.chunk)
-        parts.append(self._render_chunk(params, encoded, sources, origins[None, sl],
-                                        directions[None, sl], jnp.asarray(locality)))
-      c, d, s = (np.concatenate([np.asarray(p[i][0]) for p in parts])[:n] for i in range(3))
-      colours.append(c.reshape(height, width, -1))
-      depths.append(d.reshape(height, width))
-      segs.append(s.reshape(height, width, -1))
-    return RenderedViews(colour=np.stack(colours), depth=np.stack(depths),
-                         segmentation=np.stack(segs), slots=np.asarray(encoded.slots[0]),
+    views = list(view_indices)
+    colour, depth, seg = render_cameras(
+        lambda o, d: self._render_chunk(params, encoded, sources, o, d, jnp.asarray(locality)),
+        cam_to_world=scene.cam_to_world[views], intrinsics=scene.intrinsics[views],
+        height=height, width=width, chunk=self.chunk)
+    n = len(views)
+    colours, depths = colour.reshape(n, height, width, -1), depth.reshape(n, height, width)
+    segs = seg.reshape(n, height, width, -1)
+    return RenderedViews(colour=colours, depth=depths, segmentation=segs, slots=np.asarray(encoded.slots[0]),
                          slot_attn=np.asarray(encoded.slot_attn[0]))
