@@ -12,6 +12,8 @@ import sys
 from absl import app, flags, logging
 from ml_collections import config_flags
 
+from slotlifter_jax import runtime
+
 config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/clevr.py:quick.",
                                 lock_config=True)
 flags.DEFINE_string("workdir", None, "Run directory: checkpoints, metrics, pictures.")
@@ -48,8 +50,8 @@ def main(argv):
   import jax
   if FLAGS.distributed:
     jax.distributed.initialize()
-  logging.info("JAX devices: %s (process %d of %d)", jax.devices(), jax.process_index(),
-               jax.process_count())
+  logging.info("JAX devices: %s (process %d of %d); %s", jax.devices(), jax.process_index(),
+               jax.process_count(), runtime.describe())
   if FLAGS.mode == "train":
     from slotlifter_jax import train
     train.train_and_evaluate(FLAGS.config, FLAGS.workdir)
@@ -76,4 +78,7 @@ def main(argv):
 
 
 if __name__ == "__main__":
+  # Before JAX loads: a retaining allocator and XLA's CPU flags (slotlifter_jax/runtime.py).
+  runtime.reexec_with_allocator()
+  runtime.set_xla_flags()
   app.run(main)

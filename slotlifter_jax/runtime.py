@@ -1,0 +1,110 @@
+"""Process set-up that must happen before JAX starts: the memory allocator and XLA's CPU flags.
+
+XLA:CPU allocates one temp buffer per executed step (hundreds of MB to GB). glibc returns such
+blocks to the OS with munmap, so every step page-faults the whole buffer back in; a retaining
+allocator (jemalloc, tcmalloc) halves the paper-sized step on a 2-core CPU (../shared/PERF_NOTES.md).
+The allocator can only be swapped at exec time, so `main` and the benchmark re-execute themselves
+once with LD_PRELOAD set. Nothing here changes results, only speed and memory.
+
+SLOTLIFTER_ALLOCATOR picks it: "auto" (default: jemalloc, else tcmalloc, else the system one),
+"jemalloc", "tcmalloc" or "system" (no preload).
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import sys
+
+ENV = "SLOTLIFTER_ALLOCATOR"
+_MARK = "SLOTLIFTER_ALLOCATOR_APPLIED"
+
+_CANDIDATES = {
+    "jemalloc": ("libjemalloc.so.2", "libjemalloc.so"),
+    "tcmalloc": ("libtcmalloc_minimal.so.4", "libtcmalloc.so.4", "libtcmalloc_minimal.so"),
+}
+_LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
+             "/usr/local/lib", "/opt/homebrew/lib")
+
+# jemalloc keeps freed pages (no decay) so the next step's temp buffer is served without faults;
+# background threads would only compete for the two cores.
+JEMALLOC_CONF = "dirty_decay_ms:-1,muzzy_decay_ms:-1,background_thread:false"
+
+# The default XLA:CPU scheduler overlaps independent ops at the cost of ~25 % more temp memory on
+# the paper-sized step, for no measured speed (PERF_NOTES).
+XLA_CPU_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false",)
+
+
+def find_allocator(name: str) -> str | None:
+  """Path of the shared library of allocator `name`, or None when it is not installed."""
+  for lib in _CANDIDATES[name]:
+    for d in _LIB_DIRS:
+      hits = sorted(glob.glob(os.path.join(d, lib)))
+      if hits:
+        return hits[0]
+  return None
+
+
+def allocator_env(choice: str | None = None) -> dict[str, str]:
+  """The environment variables that preload the chosen allocator (empty for "system")."""
+  choice = (choice or os.environ.get(ENV, "auto")).lower()
+  if choice not in ("auto", "jemalloc", "tcmalloc", "system"):
+    raise ValueError(f"{ENV}={choice!r}: use auto, jemalloc, tcmalloc or system")
+  if choice == "system":
+    return {}
+  names = ("jemalloc", "tcmalloc") if choice == "auto" else (choice,)
+  for name in names:
+    path = find_allocator(name)
+    if path:
+      env = {"LD_PRELOAD": path}
+      if name == "jemalloc":
+        env["MALLOC_CONF"] = JEMALLOC_CONF
+      return env
+  if choice != "auto":
+    raise RuntimeError(f"{ENV}={choice}: lib{choice} not found in {', '.join(_LIB_DIRS)} "
+                       f"(Debian/Ubuntu: apt install libjemalloc2 or libtcmalloc-minimal4)")
+  return {}
+
+
+def set_xla_flags(environ=os.environ) -> None:
+  """Adds XLA_CPU_FLAGS to XLA_FLAGS unless the user already set them (call before importing jax)."""
+  flags = environ.get("XLA_FLAGS", "")
+  for flag in XLA_CPU_FLAGS:
+    if flag.split("=")[0] not in flags:
+      flags = f"{flags} {flag}".strip()
+  environ["XLA_FLAGS"] = flags
+
+
+def reexec_with_allocator(argv: list[str] | None = None) -> None:
+  """Re-executes this Python process once with the allocator preloaded; returns if nothing to do.
+
+  `argv` is the command to run again (default: `python -m <this __main__ module>` with the same
+  arguments). Does nothing when the allocator is already loaded, when JAX is already imported
+  (its allocator choice is fixed by then), or when no allocator library is installed.
+  """
+  if os.environ.get(_MARK) or "jax" in sys.modules:
+    return
+  env = allocator_env()
+  preload = env.get("LD_PRELOAD")
+  if not preload or preload in os.environ.get("LD_PRELOAD", ""):
+    return
+  new_env = dict(os.environ)
+  new_env.update(env)
+  new_env["LD_PRELOAD"] = " ".join(p for p in (preload, os.environ.get("LD_PRELOAD", "")) if p)
+  new_env[_MARK] = preload
+  if argv is None:
+    main_module = sys.modules["__main__"]
+    spec = getattr(main_module, "__spec__", None)
+    if spec is not None and spec.name:
+      argv = [sys.executable, "-m", spec.name.removesuffix(".__main__")] + sys.argv[1:]
+    else:
+      argv = [sys.executable] + sys.argv
+  sys.stdout.flush()
+  sys.stderr.flush()
+  os.execve(sys.executable, argv, new_env)
+
+
+def describe() -> str:
+  """One line for the log: which allocator this process runs with."""
+  loaded = os.environ.get(_MARK) or os.environ.get("LD_PRELOAD", "")
+  return f"allocator: {os.path.basename(loaded) if loaded else 'system malloc'}"
