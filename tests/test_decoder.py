@@ -109,13 +109,22 @@ def test_colour_activation_ranges():
     dec.colour_activation(raw, mode="sigmoid")
 
 
-def test_dropout_traced_rate():
-  x = jnp.ones((5000,))
-  f = jax.jit(lambda rate: dec.dropout(x, rate=rate, key=jax.random.key(0)))
-  np.testing.assert_array_equal(f(0.0), x)
-  y = np.asarray(f(0.2))
-  assert set(np.unique(y)) == {0.0, 1.25}
-  assert 0.17 < np.mean(y == 0) < 0.23
+def test_paired_dropout_traced_rate():
+  x, y = jnp.ones((20000,)), 2.0 * jnp.ones((20000,))
+  f = jax.jit(lambda rate: dec.paired_dropout(x, y, rate=rate, key=jax.random.key(0)))
+  for a, b in zip(f(0.0), (x, y)):  # rate 0 is exactly the identity (the scanned first block)
+    np.testing.assert_array_equal(a, b)
+  dx, dy = (np.asarray(v) for v in f(0.2))
+  keep = round(0.8 * 2**16) / 2**16
+  np.testing.assert_allclose(np.unique(dx), [0.0, 1.0 / keep], rtol=1e-6)
+  np.testing.assert_allclose(np.unique(dy), [0.0, 2.0 / keep], rtol=1e-6)
+  drop_x, drop_y = dx == 0, dy == 0
+  # Binomial(20000, 0.2): the standard deviation of the dropped fraction is 0.0028.
+  assert abs(drop_x.mean() - 0.2) < 0.012 and abs(drop_y.mean() - 0.2) < 0.012
+  # The two masks come from different halves of each random word: independent, not equal.
+  assert abs((drop_x & drop_y).mean() - 0.04) < 0.008
+  # Inverted dropout keeps the expectation.
+  assert abs(dx.mean() - 1.0) < 0.03
 
 
 def test_slot_decoder_shapes_weights_density_and_jit():
