@@ -1,0 +1,250 @@
+"""Train-step and rendering benchmark: step time, rays/s, FLOPs, model FLOP utilisation, memory.
+
+  python experiments/bench.py                         # every configuration below, ~15 min on 2 cores
+  python experiments/bench.py --configs=B,quick --steps=10
+
+For each configuration, in a fresh process (so its peak memory is its own) that runs exactly what
+`python -m slotlifter_jax.main` runs (same allocator preload, XLA flags, mesh and jitted step):
+  - train-step time: median (and spread) of --steps steps after two warm-up steps, rays per second;
+  - compile time of the step, XLA's temp buffer size, and the process's peak resident memory;
+  - matmul + convolution FLOPs of one step (forward and backward, counted on the jaxpr by
+    slotlifter_jax.flops), the achieved GFLOP/s, this machine's fp32 matmul peak (a 2048² matmul in
+    the same process) and their ratio, the model FLOP utilisation (MFU);
+  - the time to render one full 128×128 view (after its compilation), with the plain renderer.
+Results go to experiments/results/bench_<platform>.json (merged with what is there, so
+configurations can be measured in separate calls) and a table on stdout.
+
+Configurations (issue #7; every other setting is the paper's, configs/clevr.py):
+  A           128×128, V = 1, K = 8, 96 samples, 2 scenes × 1024 rays
+  A_lowmem    A with the decoder blocks under nn.scan + nn.remat and 2 gradient-accumulation chunks
+  paper_batch the paper's 4 scenes × 1024 rays (A's settings), 2 accumulation chunks
+  B           64×64, 32 samples, 2 scenes × 256 rays
+  quick       configs/clevr.py:quick (what the README's first command trains)
+The batches come from scenes of the embedded generator (two per batch, made in memory), so rays
+and source views look like training data; speed does not depend on the pixel values.
+"""
+
+from __future__ import annotations
+
+import gc
+import json
+import os
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+from absl import app, flags
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)
+
+from slotlifter_jax import runtime  # noqa: E402  (no JAX import)
+from experiments import bench_common  # noqa: E402
+from experiments.bench_common import CONFIGS  # noqa: E402
+
+RENDER_SIZE = 128
+
+flags.DEFINE_list("configs", ["B", "quick", "A", "A_lowmem", "paper_batch"],
+                  f"Which of {sorted(CONFIGS)} to measure.")
+flags.DEFINE_integer("steps", 10, "Timed train steps per configuration (after 2 warm-up steps).")
+flags.DEFINE_integer("render_repeats", 3, "Timed full-view renders per configuration.")
+flags.DEFINE_string("out", os.path.join(REPO, "experiments", "results"), "Results folder.")
+flags.DEFINE_string("worker", None, "Internal: measure this one configuration in this process.")
+flags.DEFINE_string("worker_json", None, "Internal: where the worker writes its result.")
+FLAGS = flags.FLAGS
+
+
+def _matmul_peak_gflops(n: int = 2048, repeats: int = 10) -> float:
+  import jax
+  import jax.numpy as jnp
+  a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
+  b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32)
+  f = jax.jit(jnp.matmul)
+  f(a, b).block_until_ready()
+  times = []
+  for _ in range(repeats):
+    t = time.perf_counter()
+    f(a, b).block_until_ready()
+    times.append(time.perf_counter() - t)
+  return 2 * n**3 / min(times) / 1e9
+
+
+def _reset_peak_rss() -> bool:
+  """Resets the kernel's high-water mark of this process's RSS (Linux ≥ 4.0), so the peak we read
+  belongs to training and not to the scene generator that ran before it."""
+  try:
+    with open("/proc/self/clear_refs", "w") as f:
+      f.write("5")
+    return True
+  except OSError:
+    return False
+
+
+def _status_bytes(field: str) -> int | None:
+  try:
+    with open("/proc/self/status") as f:
+      for line in f:
+        if line.startswith(field + ":"):
+          return int(line.split()[1]) * 1024
+  except OSError:
+    pass
+  return None
+
+
+def _peak_rss_bytes() -> int:
+  peak = _status_bytes("VmHWM")
+  return peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def measure(name: str, steps: int, render_repeats: int) -> dict:
+  import jax
+  import numpy as np
+  from slotlifter_jax import flops as flops_lib
+  from slotlifter_jax import model as model_lib
+  from slotlifter_jax import render_views
+  from slotlifter_jax import train_step as step_lib
+  from slotlifter_jax.data import pipeline
+
+  config = bench_common.config(name)
+  c = config.train
+  scenes = bench_common.scenes(c.batch_scenes, config.data.image_size, seed=0)
+  render_scene = bench_common.scenes(1, RENDER_SIZE, seed=1)[0]
+  sampler = pipeline.BatchSampler(scenes, batch_scenes=c.batch_scenes,
+                                  rays_per_scene=c.rays_per_scene, num_source_views=1,
+                                  novel_ray_prob=config.data.novel_ray_prob, seed=0)
+  mesh = step_lib.make_mesh()
+  batches = [step_lib.shard_batch(sampler.batch(i), mesh) for i in range(steps + 2)]
+  model = model_lib.build_model(config)
+  gc.collect()
+  peak_reset = _reset_peak_rss()
+  rss_before = _status_bytes("VmRSS") or 0
+  key = jax.random.key(config.seed, impl=c.prng_impl)
+  state = step_lib.init_state(model, config, sampler.batch(0), jax.random.fold_in(key, 0))
+  state = jax.device_put(state, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+  train_step = step_lib.make_train_step(model, config, key=jax.random.fold_in(key, 1), mesh=mesh)
+
+  step_flops = flops_lib.count_flops(train_step, state, batches[0])
+  t = time.perf_counter()
+  compiled = train_step.lower(state, batches[0]).compile()
+  compile_s = time.perf_counter() - t
+  rss_after_compile = _status_bytes("VmRSS") or 0
+  mem = compiled.memory_analysis()
+  temp_bytes = int(getattr(mem, "temp_size_in_bytes", 0) or 0) if mem is not None else None
+
+  times = []
+  for i, batch in enumerate(batches):
+    t = time.perf_counter()
+    state, metrics = compiled(state, batch)
+    jax.block_until_ready(state)
+    if i >= 2:
+      times.append(time.perf_counter() - t)
+  loss = float(metrics["loss"])
+  train_peak_rss = _peak_rss_bytes()
+  del batches
+
+  # One full view at 128×128 through the evaluation renderer (its own compile excluded).
+  renderer = render_views.SceneRenderer(model, config)
+  t = time.perf_counter()
+  renderer.render(state.params, render_scene, [1]).colour.sum()
+  render_first_s = time.perf_counter() - t
+  render_times = []
+  for _ in range(render_repeats):
+    t = time.perf_counter()
+    renderer.render(state.params, render_scene, [1]).colour.sum()
+    render_times.append(time.perf_counter() - t)
+
+  peak = _matmul_peak_gflops()
+  step_s = statistics.median(times)
+  achieved = step_flops / step_s / 1e9
+  return dict(
+      config=name, image_size=config.data.image_size, num_samples=config.render.num_samples,
+      batch_scenes=c.batch_scenes, rays_per_scene=c.rays_per_scene,
+      remat_scan=bool(config.model.remat_scan), grad_accum_chunks=int(c.grad_accum_chunks),
+      prng_impl=c.prng_impl, num_params=int(sum(x.size for x in jax.tree.leaves(state.params))),
+      step_s_median=step_s, step_s_min=min(times), step_s_max=max(times), steps_timed=len(times),
+      rays_per_s=c.batch_scenes * c.rays_per_scene / step_s,
+      step_gflop=step_flops / 1e9, achieved_gflops=achieved, matmul_peak_gflops=peak,
+      mfu=achieved / peak, compile_s=compile_s, xla_temp_gb=None if temp_bytes is None else temp_bytes / 1e9,
+      train_peak_rss_gb=train_peak_rss / 1e9, peak_rss_excludes_data_generation=peak_reset,
+      rss_before_model_gb=rss_before / 1e9, rss_after_compile_gb=rss_after_compile / 1e9, render_view_s=statistics.median(render_times),
+      render_first_call_s=render_first_s, render_size=RENDER_SIZE, render_chunk=config.render.chunk,
+      final_loss=loss, finite=bool(np.isfinite(loss)),
+  )
+
+
+def _platform_info() -> dict:
+  import jax
+  dev = jax.devices()[0]
+  return dict(platform=dev.platform, device_kind=getattr(dev, "device_kind", ""),
+              num_devices=jax.device_count(), cpu_count=os.cpu_count(), jax=jax.__version__,
+              host=platform.node(), allocator=runtime.describe(),
+              xla_flags=os.environ.get("XLA_FLAGS", ""),
+              date=time.strftime("%Y-%m-%d %H:%M:%S"))
+
+
+def _table(rows: list[dict]) -> str:
+  head = ("config", "s/step", "rays/s", "GFLOP", "GFLOP/s", "peak", "MFU", "compile s",
+          "temp GB", "peak RSS GB", "render 128² s")
+  lines = [" | ".join(head), " | ".join("---" for _ in head)]
+  for r in rows:
+    lines.append(" | ".join([
+        r["config"], f"{r['step_s_median']:.3f}", f"{r['rays_per_s']:.0f}", f"{r['step_gflop']:.1f}",
+        f"{r['achieved_gflops']:.1f}", f"{r['matmul_peak_gflops']:.0f}", f"{100 * r['mfu']:.1f} %",
+        f"{r['compile_s']:.1f}", f"{r['xla_temp_gb']:.2f}" if r["xla_temp_gb"] is not None else "–",
+        f"{r['train_peak_rss_gb']:.2f}", f"{r['render_view_s']:.2f}"]))
+  return "\n".join("| " + l + " |" for l in lines)
+
+
+def main(argv):
+  del argv
+  if FLAGS.worker:
+    result = measure(FLAGS.worker, FLAGS.steps, FLAGS.render_repeats)
+    with open(FLAGS.worker_json, "w") as f:
+      json.dump(result, f)
+    return
+  unknown = [n for n in FLAGS.configs if n not in CONFIGS]
+  if unknown:
+    raise app.UsageError(f"unknown configs {unknown}; choose from {sorted(CONFIGS)}")
+  runtime.set_xla_flags()
+  info = _platform_info()
+  os.makedirs(FLAGS.out, exist_ok=True)
+  out_path = os.path.join(FLAGS.out, f"bench_{info['platform']}.json")
+  previous = {}
+  if os.path.exists(out_path):
+    with open(out_path) as f:
+      previous = json.load(f).get("configs", {})
+  rows = []
+  for name in FLAGS.configs:
+    print(f"[bench] {name} …", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+      result_path = os.path.join(tmp, "result.json")
+      cmd = [sys.executable, os.path.abspath(__file__), f"--worker={name}",
+             f"--worker_json={result_path}", f"--steps={FLAGS.steps}",
+             f"--render_repeats={FLAGS.render_repeats}"]
+      proc = subprocess.run(cmd, env=dict(os.environ))
+      if proc.returncode != 0:
+        print(f"[bench] {name} failed with exit code {proc.returncode}", flush=True)
+        continue
+      with open(result_path) as f:
+        result = json.load(f)
+    result["measured"] = info
+    previous[name] = result
+    rows.append(result)
+    print(_table([result]).splitlines()[-1], flush=True)
+  # Write next to, then over, the old file: an interrupted run never leaves half a JSON.
+  tmp_path = out_path + ".tmp"
+  with open(tmp_path, "w") as f:
+    json.dump(dict(info, configs=previous), f, indent=1, sort_keys=True)
+  os.replace(tmp_path, out_path)
+  print(_table(rows))
+  print(f"[bench] wrote {out_path}")
+
+
+if __name__ == "__main__":
+  runtime.reexec_with_allocator()
+  runtime.set_xla_flags()
+  app.run(main)

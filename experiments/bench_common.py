@@ -1,0 +1,56 @@
+"""The benchmark configurations and batches shared by bench.py and profile_step.py (no flags, no
+JAX import at module level)."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+CONFIGS = {
+    "A": dict(variant="", overrides={"data.image_size": 128, "render.num_samples": 96,
+                                     "train.batch_scenes": 2, "train.rays_per_scene": 1024,
+                                     "train.grad_accum_chunks": 1}),
+    "A_lowmem": dict(variant="", overrides={"data.image_size": 128, "render.num_samples": 96,
+                                            "train.batch_scenes": 2, "train.rays_per_scene": 1024,
+                                            "model.remat_scan": True, "train.grad_accum_chunks": 2}),
+    "paper_batch": dict(variant="", overrides={"data.image_size": 128, "render.num_samples": 96,
+                                               "train.batch_scenes": 4, "train.rays_per_scene": 1024,
+                                               "train.grad_accum_chunks": 2}),
+    "B": dict(variant="", overrides={"data.image_size": 64, "render.num_samples": 32,
+                                     "train.batch_scenes": 2, "train.rays_per_scene": 256,
+                                     "train.grad_accum_chunks": 1}),
+    "quick": dict(variant="quick", overrides={}),
+}
+
+
+def config(name: str):
+  """The ml_collections config of benchmark configuration `name` (configs/clevr.py + overrides)."""
+  sys.path.insert(0, os.path.join(REPO, "configs"))
+  import clevr  # configs/clevr.py
+  spec = CONFIGS[name]
+  config = clevr.get_config(spec["variant"])
+  for path, value in spec["overrides"].items():
+    section, field = path.split(".")
+    config[section][field] = value
+  config.train.log_every = 10**9
+  return config
+
+
+def scenes(n: int, image_size: int, seed: int):
+  """n generated clevr scenes in the normalised scene frame (as the reader would return them)."""
+  import numpy as np
+  from slotlifter_jax.data import generator
+  from slotlifter_jax.data.types import Scene
+  scale = 1.0 / 7.0
+  scenes = []
+  for i in range(n):
+    g = generator.generate_scene(np.random.default_rng([seed, i]), family="clevr", views=4,
+                                 image_size=image_size)
+    c2w = g.cam_to_world.astype(np.float32).copy()
+    c2w[:, :3, 3] *= scale
+    scenes.append(Scene(name=f"bench{i}", images=g.rgb.astype(np.float32) / 255.0,
+                        cam_to_world=c2w, intrinsics=np.repeat(g.intrinsics[None], 4, 0).astype(np.float32),
+                        source_indices=(0,)))
+  return scenes
