@@ -23,5 +23,6 @@ def get_config(variant: str = ""):
   c.render.num_samples = 64
   c.render.num_fine_samples = 64
   c.train.batch_scenes = 1
+  c.train.grad_accum_chunks = 1
   c.train.locality_steps = 0
   return defaults.apply_variant(c, variant)

@@ -128,6 +128,7 @@ class SlotLifter(nn.Module):
   mask_shared_across_batch: bool = True
   # Rendering (§1.5).
   density_scale: float = 25.0
+  density_log_init: float = 0.0
   near: float = 6.0 / 7.0
   far: float = 20.0 / 7.0
   num_samples: int = 96
@@ -151,7 +152,8 @@ class SlotLifter(nn.Module):
         decoder_lib.SlotDecoder(
             width=self.point_dim, num_blocks=self.num_blocks, num_heads=self.num_heads,
             self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim, max_dropout=self.max_dropout,
-            remat_scan=self.remat_scan, locality_box=self.locality_box, name=f"allocation{p}")
+            remat_scan=self.remat_scan, locality_box=self.locality_box,
+            density_log_init=self.density_log_init, name=f"allocation{p}")
         for p in passes]
     self.colour_mlps = [
         decoder_lib.ColourMLP(hidden=self.colour_hidden, num_layers=self.colour_layers,
@@ -273,6 +275,7 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       locality_box=float(m.locality_box),
       remat_scan=bool(m.remat_scan),
       density_scale=float(m.density_scale),
+      density_log_init=float(m.density_log_init),
       near=float(r.near),
       far=float(r.far),
       num_samples=int(r.num_samples),

@@ -83,10 +83,48 @@ class MetricWriter:
     self._tb.close()
 
 
+COLLAPSED_DIR = "collapsed"  # where a collapsed attempt is moved before a restart (never deleted)
+_ATTEMPT_FILES = ("checkpoints", "metrics.jsonl", "tb", "val", "config.json")
+
+
+def collapse_settled_step(train_config) -> int:
+  """From this step on, a collapse flag means collapse: before it, slot noise and masking are still
+  annealing and diffuse segmentations are expected (slotlifter_jax/collapse.py)."""
+  return max(int(train_config.mask_anneal_steps), int(train_config.noise_anneal_steps))
+
+
+def _restart_after_collapse(config, workdir: str, step: int) -> ml_collections.ConfigDict:
+  """Moves this attempt's files to workdir/collapsed/seed_<seed>/ and returns the next config."""
+  archive = os.path.join(workdir, COLLAPSED_DIR, f"seed_{config.seed}")
+  os.makedirs(archive, exist_ok=False)
+  for name in _ATTEMPT_FILES:
+    if os.path.exists(os.path.join(workdir, name)):
+      os.replace(os.path.join(workdir, name), os.path.join(archive, name))
+  new = ml_collections.ConfigDict(config.to_dict())
+  new.seed = int(config.seed) + 1
+  new.train.collapse_restarts = int(config.train.collapse_restarts) - 1
+  logging.warning("validation flags the run as collapsed at step %d; moved it to %s and restarting "
+                  "from seed %d (%d restarts left)", step, archive, new.seed,
+                  new.train.collapse_restarts)
+  return new
+
+
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
-  """Trains (or resumes) the run in `workdir`; returns the last validation metrics."""
+  """Trains (or resumes) the run in `workdir`; returns the last validation metrics.
+
+  With `train.collapse_restarts` > 0, a run whose validation flags collapse once the schedules have
+  settled is moved to workdir/collapsed/seed_<seed>/ and trained again from the next seed.
+  """
   os.makedirs(workdir, exist_ok=True)
-  ckpt_lib.check_compatible(config, ckpt_lib.load_saved_config(workdir), workdir)
+  saved = ckpt_lib.load_saved_config(workdir)
+  ckpt_lib.check_compatible(config, saved, workdir)
+  if saved is not None and saved.get("seed") != config.seed and os.path.isdir(
+      os.path.join(workdir, COLLAPSED_DIR)):
+    # A restart after collapse changed the seed: resuming continues that attempt exactly.
+    config = ml_collections.ConfigDict(config.to_dict())
+    config.seed = int(saved["seed"])
+    config.train.collapse_restarts = int(saved["train"].get("collapse_restarts", 0))
+    logging.info("resuming the restarted attempt with seed %d", config.seed)
   config = resolve_data(config)
   train_scenes = registry.load_split(config.data, "train")
   val_scenes = registry.load_split(config.data, "val")
@@ -99,6 +137,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   if config.train.batch_scenes % n_dev:
     raise ValueError(f"train.batch_scenes={config.train.batch_scenes} must be a multiple of the "
                      f"{n_dev} devices")
+  if config.train.batch_scenes % config.train.grad_accum_chunks:
+    raise ValueError(f"train.batch_scenes={config.train.batch_scenes} must be a multiple of "
+                     f"train.grad_accum_chunks={config.train.grad_accum_chunks}")
   sampler = pipeline.BatchSampler(
       train_scenes, num_source_views=config.data.num_source_views,
       batch_scenes=config.train.batch_scenes, rays_per_scene=config.train.rays_per_scene,
@@ -121,6 +162,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   start = int(state.step)
   total = config.train.num_steps
   last_val = {}
+  restart = False
   batches = pipeline.prefetch((sampler.batch(s) for s in range(start, total)), size=2)
   t_log = time.time()
   try:
@@ -153,6 +195,17 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
           last_val = validator.run(state.params, done)
           writer.write(done, "val", last_val)
           checkpoints.save_best(state, last_val["score"])
+          if last_val.get("collapsed") == 1.0 and done >= collapse_settled_step(config.train):
+            reasons = [k.removeprefix("collapse_") for k in ("collapse_dominant_slot",
+                       "collapse_too_few_active", "collapse_near_uniform", "collapse_black")
+                       if last_val.get(k) == 1.0]
+            logging.warning("step %d: validation flags the run as collapsed (%s; largest slot "
+                            "share %.2f, %.1f active slots)", done, ", ".join(reasons),
+                            last_val.get("probe_largest_share", np.nan),
+                            last_val.get("probe_active_slots", np.nan))
+            if config.train.collapse_restarts > 0:
+              restart = True
+              break
         if done % config.train.checkpoint_every == 0 or done == total:
           checkpoints.save(state)
         if stop.signal is not None:
@@ -164,4 +217,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     checkpoints.close()
     writer.close()
     batches.close()
+  if restart:
+    return train_and_evaluate(_restart_after_collapse(config, workdir, done), workdir)
+  if last_val.get("collapsed") == 1.0:
+    logging.warning("the run ends flagged as collapsed (see 'collapsed' in %s/metrics.jsonl)", workdir)
   return last_val

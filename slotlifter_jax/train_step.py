@@ -164,7 +164,7 @@ def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) 
         nonfinite_total=state.nonfinite_total + (~finite).astype(jnp.int32))
     metrics = dict(
         loss=loss, psnr=-10.0 * jnp.log10(aux["mse"]), psnr_coarse=-10.0 * jnp.log10(aux["mse_coarse"]),
-        grad_norm=optax.global_norm(grads), param_norm=optax.global_norm(state.params),
+        grad_norm=optax.tree.norm(grads), param_norm=optax.tree.norm(state.params),
         finite=finite, nonfinite_in_row=in_row, **sched)
     return new_state, metrics
 

@@ -342,3 +342,40 @@ def test_render_mode_writes_panel_and_orbit(run_dir):
   with pytest.raises(evaluate.EvalSetupError, match="orbit_frames"):
     render_mode.render_scenes(config, run_dir, scene_indices=[0], num_orbit_frames=65,
                               progress=False)
+
+
+@pytest.mark.slow
+def test_validator_flags_a_constructed_collapsed_model_and_not_a_healthy_split(run_dir):
+  run = evaluate.load_run(load_config(), run_dir, split="val", max_scenes=2)
+  # Constant mapping queries and keys: every point gets the same logit c > 0 for all K+1 slots, so
+  # W is uniform (no slot means anything) while σ = (K/(K+1))·c keeps the renders opaque.
+  params = jax.tree.map(lambda x: x, run.params)
+  for name in ("map_query", "map_key"):
+    layer = params["allocation"][name]
+    layer["kernel"] = jnp.zeros_like(layer["kernel"])
+    layer["bias"] = jnp.ones_like(layer["bias"])
+  validator = evaluate.Validator(run.model, run.config, run.scenes, run_dir, num_pictures=0)
+  # Past the locality switch-off: the constraint would hand every outside point to slot 1.
+  collapsed = validator.run(params, run.config.train.locality_steps)
+  assert collapsed["collapsed"] == 1.0 and collapsed["collapse_near_uniform"] == 1.0
+  assert collapsed["collapse_black"] == 0.0
+  assert collapsed["probe_pixel_entropy"] > 0.99
+  # The trained smoke model is not judged here (it learnt nothing); the ground truth is the healthy
+  # decomposition: each object in a slot of its own (labels folded onto the K slots).
+  k = run.config.model.num_slots
+  seg, fg, rgb = [], [], []
+  for scene in run.scenes:
+    novel = list(scene.novel_indices)
+    labels = scene.masks[novel].reshape(len(novel), -1)
+    seg.append(np.eye(k, dtype=np.float32)[np.maximum(labels - 1, 0) % k])
+    fg.append(labels > 0)
+    rgb.append(scene.images[novel].reshape(len(novel), -1, 3))
+  healthy = evaluate.collapse_statistics(segmentation=np.concatenate(seg), rendered=np.concatenate(rgb),
+                                         target=np.concatenate(rgb), foreground=np.concatenate(fg))
+  assert healthy["collapsed"] == 0.0 and healthy["probe_active_slots"] >= 2
+  # All foreground in one slot (the other collapse of SPEC §6) is flagged by the same function.
+  one = np.zeros_like(np.concatenate(seg))
+  one[..., 0] = 1.0
+  merged = evaluate.collapse_statistics(segmentation=one, rendered=np.concatenate(rgb),
+                                        target=np.concatenate(rgb), foreground=np.concatenate(fg))
+  assert merged["collapsed"] == 1.0 and merged["collapse_dominant_slot"] == 1.0

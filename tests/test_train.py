@@ -1,6 +1,7 @@
 """Training: one step end to end, the non-finite guard, exact resume, and multi-device agreement."""
 
 import importlib.util
+import json
 import os
 import signal
 import subprocess
@@ -14,6 +15,7 @@ import optax
 import pytest
 
 from slotlifter_jax import checkpoints as ckpt_lib
+from slotlifter_jax import evaluate
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import schedules
 from slotlifter_jax import train
@@ -108,9 +110,9 @@ def test_gradient_accumulation_matches_mean_of_chunk_gradients():
   mean_grads = jax.tree.map(lambda a, b: (a + b) / 2, outs[0][1], outs[1][1])
   mean_loss = (outs[0][0][0] + outs[1][0][0]) / 2
   np.testing.assert_allclose(m["loss"], mean_loss, rtol=1e-5)
-  np.testing.assert_allclose(m["grad_norm"], optax.global_norm(mean_grads), rtol=1e-4)
+  np.testing.assert_allclose(m["grad_norm"], optax.tree.norm(mean_grads), rtol=1e-4)
   # …and it is not just one chunk's gradient.
-  assert abs(float(optax.global_norm(outs[0][1])) - float(m["grad_norm"])) > 1e-3
+  assert abs(float(optax.tree.norm(outs[0][1])) - float(m["grad_norm"])) > 1e-3
 
 
 def _final_params(workdir, config):
@@ -186,3 +188,31 @@ def test_four_devices_match_one_device():
   result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                           timeout=600)
   assert result.returncode == 0, result.stdout + result.stderr
+
+
+@pytest.mark.slow
+def test_collapsed_run_is_kept_and_restarted_from_the_next_seed(tmp_path, monkeypatch):
+  config = load_config()
+  config.train.collapse_restarts = 1
+  real_run = evaluate.Validator.run
+  calls = {"n": 0}
+  def run_flagging_the_first_attempt(self, params, step):
+    result = real_run(self, params, step)
+    calls["n"] += 1
+    result["collapsed"] = 1.0 if calls["n"] == 1 else 0.0  # the first validation of seed 0
+    return result
+  monkeypatch.setattr(evaluate.Validator, "run", run_flagging_the_first_attempt)
+  workdir = str(tmp_path / "run")
+  settled = train.collapse_settled_step(config.train)
+  assert settled <= config.train.eval_every  # the first validation already counts
+  train.train_and_evaluate(config, workdir)
+
+  archive = os.path.join(workdir, train.COLLAPSED_DIR, "seed_0")
+  with open(os.path.join(archive, "metrics.jsonl")) as f:
+    first = [json.loads(line) for line in f]
+  assert max(r["step"] for r in first) == config.train.eval_every  # stopped at the flag
+  assert os.path.isdir(os.path.join(archive, "checkpoints"))  # nothing was deleted
+  with open(os.path.join(workdir, "config.json")) as f:
+    saved = json.load(f)
+  assert saved["seed"] == 1 and saved["train"]["collapse_restarts"] == 0
+  assert _final_params(workdir, config)[0] == config.train.num_steps
