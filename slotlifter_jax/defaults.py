@@ -93,6 +93,8 @@ def base_config() -> ml_collections.ConfigDict:
   # (same gradient, a fraction of the activation memory): the paper's 4 × 1024 rays × 96 samples
   # need about 23 GB of temporaries in one piece (PERF_NOTES), two chunks fit a 24 GB machine.
   t.grad_accum_chunks = 2
+  # …and the rays of each chunk into this many parts (memory mode: experiments/README.md).
+  t.ray_chunks = 1
   # Random-bit generator of every training key. "unsafe_rbg" makes dropout/masking bits cheaper
   # (PERF_NOTES: threefry dropout masks are ~20 % of a step on CPU) and compiles faster; both are
   # deterministic in (seed, step), so resumes stay exact.
@@ -116,7 +118,7 @@ def quick(c):
   samples, and every schedule compressed to the shorter run.
 
   Two settings differ from a plain compression of the paper's, both measured on clevr
-  (README, "Status of the quick training result"):
+  (README, "The quick model"):
   - s_σ starts at −3 instead of 0 (`model.density_log_init`). With 32 samples a ray is opaque
     within its first two samples at initialisation (α ≈ 0.9 at σ ≈ 1, δ·25 ≈ 1.6); every run
     that started so stayed in a "fog" at the near plane (depth = near, σ ≈ 30–150 on every
@@ -125,9 +127,10 @@ def quick(c):
   - base_lr 5e-5 (the paper's); 4× that pinned the fog within 150 steps.
 
   Measured on this 2-core CPU with `python -m slotlifter_jax.main --config=configs/clevr.py:quick
-  --workdir=DIR` (jemalloc preloaded): 4000 steps in 25 min 24 s wall (about 3.1 steps/s), then
+  --workdir=DIR` (jemalloc preloaded; main now prefers tcmalloc, see runtime.py): 4000 steps in
+  25 min 24 s wall (about 3.1 steps/s), then
   `--mode=eval` on the 100-scene test split: novel-view PSNR 22.34 ± 0.16 dB, FG-ARI 0.160 ± 0.011,
-  NV-ARI 0.562 ± 0.012, ARI 0.676. The issue's targets (PSNR ≥ 28, FG-ARI ≥ 0.8) are not met.
+  NV-ARI 0.562 ± 0.012, ARI 0.676. The targets (PSNR ≥ 28 dB, FG-ARI ≥ 0.8) are not met yet.
   """
   c.data.image_size = 64
   c.data.num_train_scenes = 1000

@@ -140,6 +140,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   if config.train.batch_scenes % config.train.grad_accum_chunks:
     raise ValueError(f"train.batch_scenes={config.train.batch_scenes} must be a multiple of "
                      f"train.grad_accum_chunks={config.train.grad_accum_chunks}")
+  if config.train.rays_per_scene % config.train.ray_chunks:
+    raise ValueError(f"train.rays_per_scene={config.train.rays_per_scene} must be a multiple of "
+                     f"train.ray_chunks={config.train.ray_chunks}")
   sampler = pipeline.BatchSampler(
       train_scenes, num_source_views=config.data.num_source_views,
       batch_scenes=config.train.batch_scenes, rays_per_scene=config.train.rays_per_scene,

@@ -24,6 +24,8 @@ from slotlifter_jax import model as model_lib
 from slotlifter_jax import schedules
 
 RNG_STREAMS = ("dropout", "noise", "sample", "mask")
+# Batch entries with a ray axis (axis 1), which ray chunks split; the others are per scene.
+RAY_KEYS = ("ray_origins", "ray_directions", "target_rgb")
 
 # Parameters of these submodules follow the head schedule (no warm-up); everything else follows the
 # backbone schedule (SPEC §2).
@@ -129,16 +131,31 @@ def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) 
   sharded over its scene axis along mesh axis 'data' and the state is replicated.
   """
   tx = make_optimizer(config.train)
-  chunks = config.train.grad_accum_chunks
+  scene_chunks = int(config.train.grad_accum_chunks)
+  ray_chunks = int(config.train.get("ray_chunks", 1))
+  chunks = scene_chunks * ray_chunks
   grad_fn = make_grad_fn(model, config)
+
+  def split(batch):
+    """[B, ...] / [B, R, ...] → [chunks, B/scene_chunks, (R/ray_chunks,) ...], scene-major."""
+    def one(key, x):
+      b = x.shape[0]
+      x = x.reshape((scene_chunks, b // scene_chunks) + x.shape[1:])
+      if key in RAY_KEYS:
+        r = x.shape[2]
+        x = x.reshape(x.shape[:2] + (ray_chunks, r // ray_chunks) + x.shape[3:])
+        x = jnp.moveaxis(x, 2, 1)  # [scene_chunks, ray_chunks, B/sc, R/rc, ...]
+      else:  # per-scene inputs are shared by the ray chunks of a scene
+        x = jnp.broadcast_to(x[:, None], (scene_chunks, ray_chunks) + x.shape[1:])
+      return x.reshape((chunks,) + x.shape[2:])
+    return {k: one(k, v) for k, v in batch.items()}
 
   def grads_over_chunks(params, batch, step_key, sched):
     if chunks == 1:
       return grad_fn(params, batch, step_key, sched)
-    # Gradient accumulation over scene chunks: the loss is a mean over equal-sized chunks, so the
-    # mean of the chunk gradients is the full-batch gradient, at a fraction of the activations.
-    split = jax.tree.map(lambda x: x.reshape((chunks, x.shape[0] // chunks) + x.shape[1:]), batch)
-
+    # Gradient accumulation: the loss is a mean over equal-sized chunks, so the mean of the chunk
+    # gradients is the full-batch gradient, at a fraction of the activations. Ray chunks re-run
+    # the (cheap) encoder and slot attention of their scene.
     def body(acc, inputs):
       i, chunk = inputs
       (loss, aux), g = grad_fn(params, chunk, jax.random.fold_in(step_key, i), sched)
@@ -146,7 +163,7 @@ def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) 
 
     zeros = jax.tree.map(jnp.zeros_like, ((jnp.zeros(()), dict(mse_coarse=jnp.zeros(()),
                                                                  mse=jnp.zeros(()))), params))
-    total, _ = jax.lax.scan(body, zeros, (jnp.arange(chunks), split))
+    total, _ = jax.lax.scan(body, zeros, (jnp.arange(chunks), split(batch)))
     return jax.tree.map(lambda x: x / chunks, total)
 
   def step(state: TrainState, batch: dict):

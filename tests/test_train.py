@@ -90,11 +90,14 @@ def test_step_learns_and_nan_batch_is_skipped():
   assert bool(m["finite"]) and int(state.nonfinite_in_row) == 0
 
 
-def test_gradient_accumulation_matches_mean_of_chunk_gradients():
-  """chunks=2 gives the mean of the two half-batch gradients, each with its own chunk key."""
+@pytest.mark.parametrize("ray_chunks", [1, 2])
+def test_gradient_accumulation_matches_mean_of_chunk_gradients(ray_chunks):
+  """2 scene chunks (× ray_chunks) give the mean of the chunk gradients, each with its own key;
+  chunk i holds scenes of half i // ray_chunks and rays of part i % ray_chunks."""
   config = load_config()
   config.train.batch_scenes = 4
   config.train.grad_accum_chunks = 2
+  config.train.ray_chunks = ray_chunks
   model = model_lib.build_model(config)
   batch = fake_batch(config)
   state = step_lib.init_state(model, config, batch, jax.random.key(0))
@@ -105,10 +108,16 @@ def test_gradient_accumulation_matches_mean_of_chunk_gradients():
   grad_fn = jax.jit(step_lib.make_grad_fn(model, config))
   sched = schedules.all_schedules(0, config.train)
   step_key = jax.random.fold_in(base_key, 0)
-  halves = [jax.tree.map(lambda x: x[2 * i:2 * i + 2], batch) for i in range(2)]
-  outs = [grad_fn(params, h, jax.random.fold_in(step_key, i), sched) for i, h in enumerate(halves)]
-  mean_grads = jax.tree.map(lambda a, b: (a + b) / 2, outs[0][1], outs[1][1])
-  mean_loss = (outs[0][0][0] + outs[1][0][0]) / 2
+  rays = config.train.rays_per_scene // ray_chunks
+  chunks = []
+  for half in range(2):
+    for part in range(ray_chunks):
+      chunks.append({k: v[2 * half:2 * half + 2, part * rays:(part + 1) * rays]
+                     if k in step_lib.RAY_KEYS else v[2 * half:2 * half + 2]
+                     for k, v in batch.items()})
+  outs = [grad_fn(params, h, jax.random.fold_in(step_key, i), sched) for i, h in enumerate(chunks)]
+  mean_grads = jax.tree.map(lambda *g: sum(g) / len(g), *[o[1] for o in outs])
+  mean_loss = sum(o[0][0] for o in outs) / len(outs)
   np.testing.assert_allclose(m["loss"], mean_loss, rtol=1e-5)
   np.testing.assert_allclose(m["grad_norm"], optax.tree.norm(mean_grads), rtol=1e-4)
   # …and it is not just one chunk's gradient.
