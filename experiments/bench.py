@@ -16,7 +16,8 @@ configurations can be measured in separate calls) and a table on stdout.
 
 Configurations (issue #7; every other setting is the paper's, configs/clevr.py):
   A           128×128, V = 1, K = 8, 96 samples, 2 scenes × 1024 rays
-  A_lowmem    A with the decoder blocks under nn.scan + nn.remat and 2 gradient-accumulation chunks
+  A_lowmem    A in memory mode: decoder blocks under nn.scan + nn.remat, gradients accumulated over
+              2 scene chunks × 2 ray chunks
   paper_batch the paper's 4 scenes × 1024 rays (A's settings), 2 accumulation chunks
   B           64×64, 32 samples, 2 scenes × 256 rays
   quick       configs/clevr.py:quick (what the README's first command trains)
@@ -104,28 +105,15 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
   import jax
   import numpy as np
   from slotlifter_jax import flops as flops_lib
-  from slotlifter_jax import model as model_lib
   from slotlifter_jax import render_views
-  from slotlifter_jax import train_step as step_lib
-  from slotlifter_jax.data import pipeline
 
-  config = bench_common.config(name)
-  c = config.train
-  scenes = bench_common.scenes(c.batch_scenes, config.data.image_size, seed=0)
+  c = bench_common.config(name).train
+  train_scenes = bench_common.scenes(c.batch_scenes, bench_common.config(name).data.image_size, seed=0)
   render_scene = bench_common.scenes(1, RENDER_SIZE, seed=1)[0]
-  sampler = pipeline.BatchSampler(scenes, batch_scenes=c.batch_scenes,
-                                  rays_per_scene=c.rays_per_scene, num_source_views=1,
-                                  novel_ray_prob=config.data.novel_ray_prob, seed=0)
-  mesh = step_lib.make_mesh()
-  batches = [step_lib.shard_batch(sampler.batch(i), mesh) for i in range(steps + 2)]
-  model = model_lib.build_model(config)
   gc.collect()
-  peak_reset = _reset_peak_rss()
+  peak_reset = _reset_peak_rss()  # what follows is what training holds, not the generator
   rss_before = _status_bytes("VmRSS") or 0
-  key = jax.random.key(config.seed, impl=c.prng_impl)
-  state = step_lib.init_state(model, config, sampler.batch(0), jax.random.fold_in(key, 0))
-  state = jax.device_put(state, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
-  train_step = step_lib.make_train_step(model, config, key=jax.random.fold_in(key, 1), mesh=mesh)
+  config, model, state, batches, train_step = bench_common.setup_step(name, steps + 2, train_scenes)
 
   step_flops = flops_lib.count_flops(train_step, state, batches[0])
   t = time.perf_counter()
@@ -164,6 +152,7 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
       config=name, image_size=config.data.image_size, num_samples=config.render.num_samples,
       batch_scenes=c.batch_scenes, rays_per_scene=c.rays_per_scene,
       remat_scan=bool(config.model.remat_scan), grad_accum_chunks=int(c.grad_accum_chunks),
+      ray_chunks=int(c.ray_chunks),
       prng_impl=c.prng_impl, num_params=int(sum(x.size for x in jax.tree.leaves(state.params))),
       step_s_median=step_s, step_s_min=min(times), step_s_max=max(times), steps_timed=len(times),
       rays_per_s=c.batch_scenes * c.rays_per_scene / step_s,

@@ -14,7 +14,8 @@ CONFIGS = {
                                      "train.grad_accum_chunks": 1}),
     "A_lowmem": dict(variant="", overrides={"data.image_size": 128, "render.num_samples": 96,
                                             "train.batch_scenes": 2, "train.rays_per_scene": 1024,
-                                            "model.remat_scan": True, "train.grad_accum_chunks": 2}),
+                                            "model.remat_scan": True, "train.grad_accum_chunks": 2,
+                                            "train.ray_chunks": 2}),
     "paper_batch": dict(variant="", overrides={"data.image_size": 128, "render.num_samples": 96,
                                                "train.batch_scenes": 4, "train.rays_per_scene": 1024,
                                                "train.grad_accum_chunks": 2}),
@@ -54,3 +55,31 @@ def scenes(n: int, image_size: int, seed: int):
                         cam_to_world=c2w, intrinsics=np.repeat(g.intrinsics[None], 4, 0).astype(np.float32),
                         source_indices=(0,)))
   return scenes
+
+
+def setup_step(name: str, num_batches: int, train_scenes=None):
+  """Everything `slotlifter_jax.train` builds for a step, for configuration `name`.
+
+  Returns (config, model, state, batches, train_step): `num_batches` batches already on the mesh
+  (rays of `train_scenes`, default freshly generated ones), the replicated initial state and the
+  jitted, state-donating step.
+  """
+  import jax
+  from slotlifter_jax import model as model_lib
+  from slotlifter_jax import train_step as step_lib
+  from slotlifter_jax.data import pipeline
+  cfg = config(name)
+  c = cfg.train
+  if train_scenes is None:
+    train_scenes = scenes(c.batch_scenes, cfg.data.image_size, seed=0)
+  sampler = pipeline.BatchSampler(train_scenes,
+                                  batch_scenes=c.batch_scenes, rays_per_scene=c.rays_per_scene,
+                                  num_source_views=1, novel_ray_prob=cfg.data.novel_ray_prob, seed=0)
+  mesh = step_lib.make_mesh()
+  batches = [step_lib.shard_batch(sampler.batch(i), mesh) for i in range(num_batches)]
+  model = model_lib.build_model(cfg)
+  key = jax.random.key(cfg.seed, impl=c.prng_impl)
+  state = step_lib.init_state(model, cfg, sampler.batch(0), jax.random.fold_in(key, 0))
+  state = jax.device_put(state, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
+  train_step = step_lib.make_train_step(model, cfg, key=jax.random.fold_in(key, 1), mesh=mesh)
+  return cfg, model, state, batches, train_step

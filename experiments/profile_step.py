@@ -33,7 +33,8 @@ from slotlifter_jax import runtime  # noqa: E402
 
 flags.DEFINE_string("config", "A", "A configuration name of experiments/bench.py.")
 flags.DEFINE_integer("steps", 3, "Profiled steps (after 2 warm-up steps).")
-flags.DEFINE_integer("depth", 4, "Scope components kept when grouping (after the model root).")
+flags.DEFINE_integer("depth", 4, "Scope components kept when grouping (after the model root); "
+                     "the blocks of the allocation transformer are summed as block_*.")
 flags.DEFINE_integer("top", 20, "Rows of each table.")
 flags.DEFINE_string("out", os.path.join(REPO, "experiments", "results"), "Results folder.")
 FLAGS = flags.FLAGS
@@ -66,8 +67,8 @@ def scope_of(op_name: str, depth: int) -> tuple[str, str]:
       c.startswith(("encoder", "slot_attention", "allocation", "colour_mlp", "lift"))
       for c in clean):
     return "optimiser/other", "/".join(clean[:2]) or "?"
-  while clean and clean[0] in ("SlotLifter", "while", "body", "scan"):
-    clean.pop(0)
+  clean = [c for c in clean if not c.startswith("SlotLifter") and c not in ("while", "body", "scan")]
+  clean = [re.sub(r"^block_\d+$", "block_*", c) for c in clean]  # the 4 blocks together
   model_parts = [c for c in clean if not re.fullmatch(r"[a-z_]+(?:_p)?", c) or c in (
       "encoder", "slot_attention", "transformer", "self_attn", "cross_attn", "conv", "ffn_in",
       "ffn_out", "final_norm", "map_query", "map_key", "map_out", "lift", "positional")
@@ -93,23 +94,8 @@ def main(argv):
   runtime.set_xla_flags()
   import jax
   from experiments import bench_common as bench
-  from slotlifter_jax import model as model_lib
-  from slotlifter_jax import train_step as step_lib
-  from slotlifter_jax.data import pipeline
 
-  config = bench.config(FLAGS.config)
-  c = config.train
-  scenes = bench.scenes(c.batch_scenes, config.data.image_size, seed=0)
-  sampler = pipeline.BatchSampler(scenes, batch_scenes=c.batch_scenes,
-                                  rays_per_scene=c.rays_per_scene, num_source_views=1,
-                                  novel_ray_prob=config.data.novel_ray_prob, seed=0)
-  mesh = step_lib.make_mesh()
-  model = model_lib.build_model(config)
-  key = jax.random.key(config.seed, impl=c.prng_impl)
-  state = step_lib.init_state(model, config, sampler.batch(0), jax.random.fold_in(key, 0))
-  state = jax.device_put(state, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
-  batches = [step_lib.shard_batch(sampler.batch(i), mesh) for i in range(FLAGS.steps + 2)]
-  train_step = step_lib.make_train_step(model, config, key=jax.random.fold_in(key, 1), mesh=mesh)
+  config, _, state, batches, train_step = bench.setup_step(FLAGS.config, FLAGS.steps + 2)
   compiled = train_step.lower(state, batches[0]).compile()
   op_names = hlo_op_names(compiled.as_text())
   for b in batches[:2]:
