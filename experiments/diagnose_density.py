@@ -1,4 +1,4 @@
-"""Where does a run put its density? `python experiments/diagnose_density.py CONFIG RUN_DIR [SCENE]`.
+"""Where does a run put its density? `python experiments/diagnose_density.py CONFIG RUN_DIR [SCENE [SPLIT]]`.
 
 Example: python experiments/diagnose_density.py configs/clevr.py:quick runs/clevr_quick
 Prints, for one validation scene's first novel view rendered from the run's latest checkpoint, the
@@ -32,9 +32,9 @@ def load_config(arg: str):
   return module.get_config(variant)
 
 
-def main(config_arg: str, run_dir: str, scene_index: int = 0) -> None:
+def main(config_arg: str, run_dir: str, scene_index: int = 0, split: str = "val") -> None:
   config = train.resolve_data(load_config(config_arg))
-  scene = registry.load_split(config.data, "val", max_scenes=scene_index + 1)[scene_index]
+  scene = registry.load_split(config.data, split, max_scenes=scene_index + 1)[scene_index]
   model = model_lib.build_model(config)
   key = jax.random.key(0, impl=config.train.prng_impl)
   abstract = step_lib.init_state(model, config, evaluate.init_batch(scene), key)
@@ -68,4 +68,5 @@ def main(config_arg: str, run_dir: str, scene_index: int = 0) -> None:
 
 
 if __name__ == "__main__":
-  main(sys.argv[1], sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else 0)
+  main(sys.argv[1], sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else 0,
+       sys.argv[4] if len(sys.argv) > 4 else "val")
