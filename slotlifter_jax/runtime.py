@@ -8,10 +8,9 @@ once with LD_PRELOAD set. Nothing here changes results, only speed and memory.
 
 SLOTLIFTER_ALLOCATOR picks it: "auto" (default: tcmalloc, else jemalloc, else the system one),
 "tcmalloc", "jemalloc" or "system" (no preload). tcmalloc comes first because it reuses the freed
-temp buffer step after step: on the paper-sized step (experiments/bench.py config A, 9.6 GB of XLA
-temp) its RSS stayed at 10.6 GB over six steps at 4.6 s each, while jemalloc (decay off) mapped a
-fresh buffer every other step (RSS 11.5 → 21.2 GB in four steps, those steps 20 s, then the
-benchmark was OOM-killed).
+temp buffer: on the paper-sized step (experiments/bench.py config A, 9.6 GB of XLA temp) jemalloc
+with decay off kept mapping fresh buffers until the benchmark was OOM-killed, tcmalloc did not
+(`experiments/rss_per_step.py`; figures in experiments/README.md).
 """
 
 from __future__ import annotations
