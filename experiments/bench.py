@@ -107,13 +107,14 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
   from slotlifter_jax import flops as flops_lib
   from slotlifter_jax import render_views
 
-  c = bench_common.config(name).train
-  train_scenes = bench_common.scenes(c.batch_scenes, bench_common.config(name).data.image_size, seed=0)
+  wanted = bench_common.config(name)
+  train_scenes = bench_common.scenes(wanted.train.batch_scenes, wanted.data.image_size, seed=0)
   render_scene = bench_common.scenes(1, RENDER_SIZE, seed=1)[0]
   gc.collect()
   peak_reset = _reset_peak_rss()  # what follows is what training holds, not the generator
   rss_before = _status_bytes("VmRSS") or 0
   config, model, state, batches, train_step = bench_common.setup_step(name, steps + 2, train_scenes)
+  c = config.train
 
   step_flops = flops_lib.count_flops(train_step, state, batches[0])
   t = time.perf_counter()
