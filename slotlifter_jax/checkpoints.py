@@ -100,13 +100,22 @@ def load_saved_config(workdir: str) -> dict | None:
 
 
 def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, where: str) -> None:
-  """Raises when the architecture fields of `config` differ from the saved ones, naming them."""
+  """Raises when the architecture fields of `config` differ from the saved ones, naming them.
+
+  A field the saved config lacks was added to the code after that run was made; new fields
+  default to the behaviour from before they existed (e.g. model.feature_lifting), so the saved run
+  is read as having `defaults.base_config()`'s value for it.
+  """
   if saved is None:
     return
+  from slotlifter_jax import defaults
   current = json.loads(config.to_json_best_effort())
+  base = json.loads(defaults.base_config().to_json_best_effort())
   diffs = []
   for section in ARCHITECTURE_FIELDS:
-    a, b = saved.get(section, {}), current.get(section, {})
+    a, b = dict(saved.get(section, {})), current.get(section, {})
+    for k, v in base.get(section, {}).items():
+      a.setdefault(k, v)
     for k in sorted(set(a) | set(b)):
       if _normalise(a.get(k)) != _normalise(b.get(k)):
         diffs.append(f"{section}.{k}: saved {a.get(k)!r}, requested {b.get(k)!r}")

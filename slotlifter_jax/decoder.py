@@ -16,6 +16,9 @@ then a final LayerNorm. The mapping turns the result into point-slot weights
 W = softmax(q(h)·k(S')ᵀ/√C) over K+1, the slot feature F_s = Linear(W·S'), and the slot-based
 density σ = exp(s_σ)·Σ_{k≥1} W_k·ReLU(A_k). The colour MLP maps F_s + E_p to RGB.
 
+`density_mode="mlp"` is the paper's "without slot-based density" ablation (SPEC §5): σ comes from
+a small head on h instead (`mlp_density`); W, F_s and the colour are unchanged.
+
 Initialisers follow the official code's `linear` helper: xavier-uniform kernels and zero biases;
 the attention output projections and the FFN's last layer use xavier-uniform with gain
 (3·num_blocks)^-½ (variance scaled by 1/12 for 4 blocks); the FFN's first layer and the colour
@@ -120,6 +123,19 @@ def slot_density(*, logits: jax.Array, weights: jax.Array, log_scale: jax.Array)
   """σ = exp(s_σ)·Σ_{k=1..K} W_k·ReLU(A_k) ≥ 0 [...]; the empty slot (index 0) adds nothing."""
   per_slot = weights[..., 1:] * jax.nn.relu(logits[..., 1:])  # [..., K]
   return jnp.exp(log_scale) * jnp.sum(per_slot, axis=-1)
+
+
+def mlp_density(*, raw: jax.Array, log_scale: jax.Array) -> jax.Array:
+  """σ = exp(s_σ)·softplus(o) ≥ 0 [...] from a density head's output o [..., 1].
+
+  The "without slot-based density" ablation (SPEC §5). softplus, not exp: it is the smooth
+  counterpart of the ReLU in `slot_density`, so σ grows linearly with the head's output as the slot
+  formula does with A_k, and the learned log scale s_σ with its init `density_log_init` (which the
+  quick variant lowers so a ray's first samples start transparent) means the same in both modes;
+  exp(o) would make σ exponential in an unbounded output. Unlike ReLU its gradient never vanishes,
+  so a head that starts negative can still grow density.
+  """
+  return jnp.exp(log_scale) * jax.nn.softplus(raw[..., 0])
 
 
 def colour_activation(raw: jax.Array, *, mode: str) -> jax.Array:
@@ -247,7 +263,7 @@ class Allocation:
   features: jax.Array  # [B, R, S, C] F_s = Linear(W·S')
   weights: jax.Array  # [B, R, S, K+1] point-slot weights W (index 0 = empty slot)
   logits: jax.Array  # [B, R, S, K+1] mapping logits A after the locality mask
-  density: jax.Array  # [B, R, S] slot-based density σ ≥ 0
+  density: jax.Array  # [B, R, S] density σ ≥ 0 (slot-based, or the MLP head's)
 
 
 def _empty_slot_init(key, shape, dtype=jnp.float32):
@@ -257,8 +273,17 @@ def _empty_slot_init(key, shape, dtype=jnp.float32):
   return jax.random.uniform(key, shape, dtype, -bound, bound)
 
 
+DENSITY_MODES = ("slot", "mlp")
+
+
 class SlotDecoder(nn.Module):
-  """Allocation transformer + point-slot mapping + slot density (official `JointDecoder`)."""
+  """Allocation transformer + point-slot mapping + density (official `JointDecoder`).
+
+  density_mode "slot" (the paper's): σ = exp(s_σ)·Σ_{k≥1} W_k·ReLU(A_k). "mlp" (the ablation
+  "without slot-based density", SPEC §5): σ = `mlp_density` of Dense(C) → ReLU → Dense(1) on the
+  transformer's output h, with the same learned s_σ; only then do `density_hidden` and
+  `density_out` parameters exist.
+  """
   width: int = 64
   num_blocks: int = 4
   num_heads: int = 4
@@ -268,6 +293,7 @@ class SlotDecoder(nn.Module):
   remat_scan: bool = False
   locality_box: float = 0.64
   density_log_init: float = 0.0  # initial s_σ (official: 0)
+  density_mode: str = "slot"  # "slot" | "mlp" (see the class docstring)
 
   @nn.compact
   def __call__(self, point_features: jax.Array, slots: jax.Array, points: jax.Array, *,
@@ -291,7 +317,14 @@ class SlotDecoder(nn.Module):
     mixed = jnp.einsum("brsk,bkd->brsd", weights, slots_all)  # [B, R, S, Ds]: W·S'
     features = nn.Dense(self.width, kernel_init=_xavier(), name="map_out")(mixed)
     log_scale = self.param("log_density_scale", nn.initializers.constant(self.density_log_init), ())
-    density = slot_density(logits=logits, weights=weights, log_scale=log_scale)
+    if self.density_mode == "slot":
+      density = slot_density(logits=logits, weights=weights, log_scale=log_scale)
+    elif self.density_mode == "mlp":
+      hidden = nn.relu(nn.Dense(self.width, kernel_init=_xavier(), name="density_hidden")(h))
+      raw = nn.Dense(1, kernel_init=_xavier(), name="density_out")(hidden)  # [B, R, S, 1]
+      density = mlp_density(raw=raw, log_scale=log_scale)
+    else:
+      raise ValueError(f"density_mode must be one of {DENSITY_MODES}, got {self.density_mode!r}")
     return Allocation(features=features, weights=weights, logits=logits, density=density)
 
 

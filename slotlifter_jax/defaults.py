@@ -38,6 +38,10 @@ def base_config() -> ml_collections.ConfigDict:
   m.density_log_init = 0.0  # initial value of the learned log density scale s_σ (official: 0)
   m.locality_box = 0.64  # |coordinate| beyond which only slots 0 and 1 may take a point
   m.remat_scan = False  # nn.scan + nn.remat over the decoder blocks: less memory, more time
+  # Ablations of SPEC §5 (experiments/ablations.py); the defaults are the paper's method.
+  # "Without random masking" needs no switch: train.mask_max = 0 keeps every ray's features.
+  m.feature_lifting = True  # False: point feature F_p = E_p only (no lifted features)
+  m.density_mode = "slot"  # "slot": σ from W and A (§1.4); "mlp": a small head on h (decoder.py)
 
   # ---- rendering (SPEC §1.5) ----
   r = c.render = ml_collections.ConfigDict()
@@ -46,6 +50,14 @@ def base_config() -> ml_collections.ConfigDict:
   r.num_samples = 96
   r.num_fine_samples = 0  # 0: no fine pass (synthetic sets); 64 for DTU/ScanNet
   r.chunk = 4096  # rays per chunk when rendering a full view
+  # Adaptive full-view rendering in --mode=eval and --mode=render (slotlifter_jax/adaptive.py,
+  # issue #7): the decoder runs the whole grid on every stride-th pixel only and a window of
+  # `adaptive_window` grid samples elsewhere. Off: every pixel on the whole grid (exact).
+  r.adaptive = False
+  r.adaptive_stride = 3  # proposal pixels every stride-th row and column (+ the last ones)
+  r.adaptive_window = 24  # samples per non-proposal pixel (≤ num_samples)
+  r.adaptive_mass_eps = 0.01  # render weight a proposal's significant range may leave out
+  r.adaptive_fallback = True  # a pixel whose neighbours' ranges overflow the window: whole grid
 
   # ---- data (SPEC §3) ----
   d = c.data = ml_collections.ConfigDict()
@@ -61,6 +73,10 @@ def base_config() -> ml_collections.ConfigDict:
   d.num_val_scenes = 100
   d.num_test_scenes = 100
   d.novel_ray_prob = 0.75  # probability that a scene's rays come from novel views only
+  # "uniform" (paper) or "contrast": a share `contrast_mix` of the rays drawn towards pixels far
+  # from their view's median colour (data/pipeline.py says why and what it changes).
+  d.ray_sampling = "uniform"
+  d.contrast_mix = 0.5
   d.has_masks = True
 
   # ---- training (SPEC §2) ----
@@ -72,8 +88,12 @@ def base_config() -> ml_collections.ConfigDict:
   t.lr_floor = 0.02
   t.warmup_steps = 10_000
   t.decay_steps = 50_000  # half-life of the exponential decay
+  # "lion" (paper) or "adamw". Lion moves every weight by ±lr each step whatever the gradient's
+  # size, so at small batches its steps follow the sign of a noisy gradient; see `quick`.
+  t.optimizer = "lion"
   t.b1 = 0.9
-  t.b2 = 0.99
+  t.b2 = 0.99  # Lion's β2
+  t.adam_b2 = 0.999  # AdamW's β2 (only with optimizer = "adamw")
   t.weight_decay = 1e-3
   t.grad_clip = 0.5
   t.mask_anneal_steps = 30_000  # masking ratio 0.99 → 0
@@ -141,6 +161,10 @@ def quick(c):
   c.model.encoder_stem_width = 32
   c.model.feature_dim = 32
   c.render.num_samples = 32
+  # Adaptive rendering (off by default): the setting experiments/bench_render.py picked for the
+  # trained quick model (×1.3 at −0.06 dB; experiments/README.md).
+  c.render.adaptive_stride = 4
+  c.render.adaptive_window = 16
   c.train.num_steps = 4000
   c.train.batch_scenes = 2
   c.train.rays_per_scene = 256

@@ -24,6 +24,10 @@ Choices where the SPEC leaves room or the official code differs:
 - The fine pass owns its lifting Linear as well as its allocation transformer, mapping and colour
   MLP, because in the official code all three live in the separate fine `NeRF`/`JointDecoder`;
   the encoder, slots and positional Linear are shared.
+- Ablation switches of SPEC §5, each defaulting to the paper's method: `feature_lifting=False`
+  ("without feature lifting") skips the projection and gather, so F_p = E_p and no lifting Linear
+  exists (the encoder still feeds slot attention); `density_mode="mlp"` ("without slot-based
+  density", decoder.SlotDecoder). "Without random masking" is `train.mask_max = 0` (keep ratio 1).
 - Stratified samples use `geometry.stratified_depths`' default bins (all samples inside
   [near, far]); `volume_render` puts the transparent remainder at `far`.
 """
@@ -65,7 +69,7 @@ class RenderOutput:
   # Of the last pass (the fine one when present, so S is then num_samples + num_fine_samples):
   point_slot_weights: jax.Array  # [B, R, S, K+1], index 0 = empty slot
   z: jax.Array  # [B, R, S] sample depths
-  density: jax.Array  # [B, R, S] slot-based density σ
+  density: jax.Array  # [B, R, S] density σ (slot-based unless density_mode="mlp")
 
 
 @flax.struct.dataclass
@@ -126,6 +130,9 @@ class SlotLifter(nn.Module):
   locality_box: float = 0.64
   remat_scan: bool = False
   mask_shared_across_batch: bool = True
+  # Ablations (SPEC §5); the defaults are the paper's method.
+  feature_lifting: bool = True  # False: F_p = E_p only
+  density_mode: str = "slot"  # "slot" | "mlp" (decoder.SlotDecoder)
   # Rendering (§1.5).
   density_scale: float = 25.0
   density_log_init: float = 0.0
@@ -153,7 +160,8 @@ class SlotLifter(nn.Module):
             width=self.point_dim, num_blocks=self.num_blocks, num_heads=self.num_heads,
             self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim, max_dropout=self.max_dropout,
             remat_scan=self.remat_scan, locality_box=self.locality_box,
-            density_log_init=self.density_log_init, name=f"allocation{p}")
+            density_log_init=self.density_log_init, density_mode=self.density_mode,
+            name=f"allocation{p}")
         for p in passes]
     self.colour_mlps = [
         decoder_lib.ColourMLP(hidden=self.colour_hidden, num_layers=self.colour_layers,
@@ -176,29 +184,36 @@ class SlotLifter(nn.Module):
     return Encoded(features=feats, slots=result.slots, slot_attn=result.attn)
 
   def _render_pass(self, index: int, encoded: Encoded, *, source_images, source_cam_to_world,
-                   source_intrinsics, ray_origins, ray_directions, z, keep, locality, train):
-    """One pass (0 coarse, 1 fine) at depths z [B, R, S] → (RenderResult, decoder Allocation)."""
+                   source_intrinsics, ray_origins, ray_directions, z, keep, locality, train,
+                   last_delta=None):
+    """One pass (0 coarse, 1 fine) at depths z [B, R, S] → (RenderResult, decoder Allocation).
+
+    last_delta: None, or [B, R] the δ of the last sample when z is a window of a longer grid
+    (`render_at_depths`)."""
     points = geometry.points_along_rays(origins=ray_origins, directions=ray_directions,
                                         z=z)  # [B, R, S, 3]
-    lifted = lifting.project_and_gather(
-        points=points, cam_to_world=source_cam_to_world, intrinsics=source_intrinsics,
-        images=source_images, features=encoded.features)  # values [B, R, S, V, D+3]
-    fused = lifting.fuse_views(values=lifted.values, valid=lifted.valid)  # [B, R, S, (2)(D+3)]
-    f_lift = self.lift_projs[index](fused)  # [B, R, S, C]
-    if lifted.valid.shape[-1] == 1:
-      # V = 1: valid·Linear(x), so an invalid point gets no bias either (official); the view axis
-      # of valid [B, R, S, 1] broadcasts over C.
-      f_lift = f_lift * lifted.valid
-    if keep is not None:
-      f_lift = lifting.apply_ray_mask(lifted=f_lift, keep=keep)
+    f_lift = None  # "without feature lifting" (SPEC §5): the views reach points via slots only
+    if self.feature_lifting:
+      lifted = lifting.project_and_gather(
+          points=points, cam_to_world=source_cam_to_world, intrinsics=source_intrinsics,
+          images=source_images, features=encoded.features)  # values [B, R, S, V, D+3]
+      fused = lifting.fuse_views(values=lifted.values, valid=lifted.valid)  # [B, R, S, (2)(D+3)]
+      f_lift = self.lift_projs[index](fused)  # [B, R, S, C]
+      if lifted.valid.shape[-1] == 1:
+        # V = 1: valid·Linear(x), so an invalid point gets no bias either (official); the view
+        # axis of valid [B, R, S, 1] broadcasts over C.
+        f_lift = f_lift * lifted.valid
+      if keep is not None:
+        f_lift = lifting.apply_ray_mask(lifted=f_lift, keep=keep)
     e_p = self.pos_proj(point_embedding_input(points=points, directions=ray_directions,
                                               num_freqs=self.num_freqs))  # [B, R, S, C]
-    alloc = self.allocations[index](f_lift + e_p, encoded.slots, points, locality=locality,
+    point_features = e_p if f_lift is None else f_lift + e_p  # F_p [B, R, S, C]
+    alloc = self.allocations[index](point_features, encoded.slots, points, locality=locality,
                                     train=train)
     colour = self.colour_mlps[index](alloc.features + e_p)  # [B, R, S, 3]
     result = render.volume_render(density=alloc.density, z=z, colour=colour,
                                   slot_weights=alloc.weights, far=self.far,
-                                  density_scale=self.density_scale)
+                                  density_scale=self.density_scale, last_delta=last_delta)
     return result, alloc
 
   def render_rays(self, encoded: Encoded, *, source_images: jax.Array,
@@ -232,6 +247,30 @@ class SlotLifter(nn.Module):
       fine, alloc = self._render_pass(1, encoded, **sources, **rays, z=z, keep=keep,
                                       locality=locality, train=train)
     return RenderOutput(coarse=coarse, fine=fine, point_slot_weights=alloc.weights, z=z,
+                        density=alloc.density)
+
+  def render_at_depths(self, encoded: Encoded, *, source_images: jax.Array,
+                       source_cam_to_world: jax.Array, source_intrinsics: jax.Array,
+                       ray_origins: jax.Array, ray_directions: jax.Array, z: jax.Array,
+                       last_delta: Optional[jax.Array] = None, locality=False) -> RenderOutput:
+    """The coarse pass at evaluation at given depths z [B, R, S'] (adaptive rendering, issue #7).
+
+    With z = the evaluation grid and last_delta None this is `render_rays(train=False)`. The
+    adaptive renderer (slotlifter_jax.adaptive) gives a window of that grid, S' ≤ S samples, and
+    last_delta [B, R], the grid δ of the window's last sample. Models with a fine pass (DTU,
+    ScanNet) are refused: their fine depths come from the coarse weights of the whole ray, which a
+    window does not have (out of scope for issue #7).
+    """
+    if self.num_fine_samples > 0:
+      raise ValueError(f"render_at_depths: the model has a fine pass (num_fine_samples="
+                       f"{self.num_fine_samples}); adaptive rendering covers coarse-only models "
+                       f"(the synthetic sets) only, render with render.adaptive=False")
+    coarse, alloc = self._render_pass(
+        0, encoded, source_images=source_images, source_cam_to_world=source_cam_to_world,
+        source_intrinsics=source_intrinsics, ray_origins=ray_origins,
+        ray_directions=ray_directions, z=z, keep=None, locality=locality, train=False,
+        last_delta=last_delta)
+    return RenderOutput(coarse=coarse, fine=None, point_slot_weights=alloc.weights, z=z,
                         density=alloc.density)
 
   def __call__(self, *, source_images: jax.Array, source_cam_to_world: jax.Array,
@@ -280,4 +319,6 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       far=float(r.far),
       num_samples=int(r.num_samples),
       num_fine_samples=int(r.num_fine_samples),
+      feature_lifting=bool(m.feature_lifting),
+      density_mode=str(m.density_mode),
   )

@@ -33,9 +33,19 @@ class RenderResult:
   alpha: jax.Array  # [..., S]
 
 
-def _optical_depth(*, density: jax.Array, z: jax.Array, density_scale: float) -> jax.Array:
-  """σ_i·δ_i·scale with δ_i = z_{i+1} − z_i and the last δ = 0: [..., S] -> [..., S]."""
-  delta = jnp.concatenate([z[..., 1:] - z[..., :-1], jnp.zeros_like(z[..., :1])], axis=-1)
+def _optical_depth(*, density: jax.Array, z: jax.Array, density_scale: float,
+                   last_delta: Optional[jax.Array] = None) -> jax.Array:
+  """σ_i·δ_i·scale with δ_i = z_{i+1} − z_i: [..., S] -> [..., S].
+
+  The last δ is 0 (SPEC §1.5) unless `last_delta` [...] gives it: a window of a longer sample grid
+  (slotlifter_jax.adaptive) ends at a sample whose grid successor it does not hold, and its last
+  sample must keep the δ it has in the whole grid for the window to composite like the grid.
+  """
+  if last_delta is None:
+    last = jnp.zeros_like(z[..., :1])
+  else:
+    last = jnp.broadcast_to(jnp.asarray(last_delta, z.dtype)[..., None], z[..., :1].shape)
+  delta = jnp.concatenate([z[..., 1:] - z[..., :-1], last], axis=-1)  # [..., S]
   return density * delta * density_scale
 
 
@@ -51,7 +61,8 @@ def alpha_from_density(*, density: jax.Array, z: jax.Array,
 
 def volume_render(*, density: jax.Array, z: jax.Array, colour: jax.Array,
                   slot_weights: Optional[jax.Array], far,
-                  density_scale: float = 25.0) -> RenderResult:
+                  density_scale: float = 25.0,
+                  last_delta: Optional[jax.Array] = None) -> RenderResult:
   """Composites samples along each ray (SPEC §1.5).
 
   Args:
@@ -62,11 +73,14 @@ def volume_render(*, density: jax.Array, z: jax.Array, colour: jax.Array,
     far: scalar or [...]; depth assigned to the transparent remainder 1 − Σ w (the official code uses
       the largest sample depth, which equals far at evaluation).
     density_scale: the 25 in α = 1 − exp(−25·σ·δ).
+    last_delta: None (the last δ is 0) or [...] the δ of the last sample, for a window of a longer
+      grid (see `_optical_depth`).
 
   Returns:
     RenderResult (any leading shape `...`).
   """
-  optical_depth = _optical_depth(density=density, z=z, density_scale=density_scale)
+  optical_depth = _optical_depth(density=density, z=z, density_scale=density_scale,
+                                 last_delta=last_delta)
   alpha = -jnp.expm1(-optical_depth)  # [..., S]
   # log(1 − α_j + ε) = log(exp(−x_j) + ε), evaluated stably as a logaddexp; the exclusive cumulative
   # sum then gives log T_i without an underflowing product or a division in the gradient.

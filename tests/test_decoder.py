@@ -231,3 +231,48 @@ def test_colour_mlp():
     chex.assert_shape(out, (B, R, S, 3))
     assert float(out.min()) >= lo and float(out.max()) <= 1.0
     assert len(params["params"]) == 5
+
+
+# ---------------------------------------------------------------------------------------------
+# The "without slot-based density" ablation (SPEC §5).
+
+
+def test_mlp_density_matches_numpy_and_stays_finite():
+  raw = np.array([-200.0, -30.0, -1.0, 0.0, 0.7, 30.0, 200.0], np.float32)[:, None]  # [7, 1]
+  sigma = np.asarray(dec.mlp_density(raw=jnp.asarray(raw), log_scale=jnp.asarray(-3.0)))
+  want = np.exp(-3.0) * np.logaddexp(0.0, raw[:, 0].astype(np.float64))  # softplus
+  np.testing.assert_allclose(sigma, want, rtol=1e-5, atol=1e-30)
+  assert sigma.shape == (7,) and np.all(sigma >= 0) and np.all(np.isfinite(sigma))
+  grad = jax.grad(lambda r: jnp.sum(dec.mlp_density(raw=r, log_scale=jnp.asarray(0.0))))(
+      jnp.asarray(raw))
+  assert np.all(np.isfinite(np.asarray(grad))) and np.all(np.asarray(grad)[1:-1] > 0)
+
+
+def test_mlp_density_mode_adds_a_head_and_leaves_the_mapping_alone():
+  feats, slots, points = _inputs(seed=4, scale=1.0)
+  mlp = _decoder(density_mode="mlp", density_log_init=-1.5)
+  params = _init(mlp, feats, slots, points, locality=True, train=False)
+  p = params["params"]
+  assert p["density_hidden"]["kernel"].shape == (C, C)
+  assert p["density_out"]["kernel"].shape == (C, 1)
+  assert float(p["log_density_scale"]) == -1.5
+  out = jax.jit(lambda v: mlp.apply(v, feats, slots, points, locality=True, train=False))(params)
+  chex.assert_shape(out.density, (B, R, S))
+  density = np.asarray(out.density)
+  assert np.all(np.isfinite(density)) and np.all(density >= 0)
+  # Not the slot formula on the same logits and weights.
+  slot_formula = np.asarray(dec.slot_density(logits=out.logits, weights=out.weights,
+                                             log_scale=p["log_density_scale"]))
+  assert np.abs(density - slot_formula).max() > 1e-3
+  # The same parameters without the head, in the paper's mode: W, A and F_s are identical and σ
+  # is the slot formula, so the switch changes the density only.
+  slot = _decoder(density_log_init=-1.5)
+  shared = {"params": {k: v for k, v in p.items() if not k.startswith("density_")}}
+  assert jax.tree.structure(shared) == jax.tree.structure(
+      _init(slot, feats, slots, points, locality=True, train=False))
+  ref = slot.apply(shared, feats, slots, points, locality=True, train=False)
+  for name in ("weights", "logits", "features"):
+    np.testing.assert_allclose(getattr(ref, name), getattr(out, name), atol=1e-6, err_msg=name)
+  np.testing.assert_allclose(ref.density, slot_formula, rtol=1e-5, atol=1e-7)
+  with pytest.raises(ValueError, match="density_mode"):
+    _init(_decoder(density_mode="nerf"), feats, slots, points, locality=True, train=False)

@@ -304,3 +304,100 @@ def test_build_model_and_head_prefixes():
   assert heads == {"colour_mlp", "colour_mlp_fine", "lift_proj", "lift_proj_fine", "pos_proj"}
   assert params["lift_proj"]["kernel"].shape == (2 * (64 + 3), 64)
   assert params["pos_proj"]["kernel"].shape == (120, 64)
+
+
+# ---------------------------------------------------------------------------------------------
+# Ablation switches (SPEC §5). Their defaults are the paper's method.
+
+
+def _config_params(config, size):
+  model = model_lib.build_model(config)
+  spec = lambda *shape: jax.ShapeDtypeStruct(shape, jnp.float32)
+  inputs = dict(source_images=spec(1, 1, size, size, 3), source_cam_to_world=spec(1, 1, 4, 4),
+                source_intrinsics=spec(1, 1, 3, 3), ray_origins=spec(1, 3, 3),
+                ray_directions=spec(1, 3, 3))
+  return jax.eval_shape(
+      lambda kw: model.init(jax.random.key(0), **kw, train=False), inputs)["params"]
+
+
+def _tree_signature(params):
+  """Sorted (path of module names, shape) of every parameter."""
+  return sorted((tuple(str(k.key) for k in p), tuple(x.shape))
+                for p, x in jax.tree_util.tree_flatten_with_path(params)[0])
+
+
+def test_ablation_defaults_leave_the_model_unchanged():
+  """The switches default to the paper's method: the same parameter tree as before they existed
+  (leaf and parameter counts of configs/clevr.py:smoke taken from the code without them)."""
+  config = defaults.base_config()
+  assert config.model.feature_lifting is True and config.model.density_mode == "slot"
+  assert config.train.mask_max == 0.99
+  defaults.smoke(config)
+  params = _config_params(config, config.data.image_size)
+  signature = _tree_signature(params)
+  assert len(signature) == 152 and sum(x.size for x in jax.tree.leaves(params)) == 48_020
+  assert not any({"density_hidden", "density_out"} & set(path) for path, _ in signature)
+  for name, value in (("feature_lifting", False), ("density_mode", "mlp")):
+    other = config.copy_and_resolve_references()
+    other.model[name] = value
+    model = model_lib.build_model(other)
+    assert getattr(model, name) == value  # wired through build_model
+    changed = _tree_signature(_config_params(other, config.data.image_size))
+    extra, missing = set(changed) - set(signature), set(signature) - set(changed)
+    if name == "feature_lifting":  # only the lifting Linear goes
+      assert not extra and {p[0] for p, _ in missing} == {"lift_proj"}
+    else:  # only the density head comes
+      assert not missing and {p[:2] for p, _ in extra} == {
+          ("allocation", "density_hidden"), ("allocation", "density_out")}
+
+
+def test_without_feature_lifting_points_see_the_views_only_through_the_slots():
+  model = _tiny(feature_lifting=False)
+  inputs = _inputs(1, seed=3)
+  variables = _init(model, inputs)
+  assert "lift_proj" not in variables["params"]
+  assert {"encoder", "slot_attention"} <= set(variables["params"])
+  other_pixels = dict(inputs, source_images=jnp.asarray(
+      np.random.default_rng(9).uniform(0, 1, size=inputs["source_images"].shape), jnp.float32))
+
+  @jit
+  def encode_and_render(variables, encode_from, render_from):
+    encoded = model.apply(variables, **_sources(encode_from), train=False, method=model.encode)
+    out = model.apply(variables, encoded, **_sources(render_from),
+                      ray_origins=inputs["ray_origins"], ray_directions=inputs["ray_directions"],
+                      train=False, method=model.render_rays)
+    return encoded.slots, out
+
+  slots, out = encode_and_render(variables, inputs, inputs)
+  chex.assert_tree_all_finite(out)
+  # Slots held fixed, the source pixels (and hence features) changed: the render is the same.
+  _, same = encode_and_render(variables, inputs, other_pixels)
+  chex.assert_trees_all_equal(same, out)
+  # …but the slots still come from the pixels, so the full model does see them.
+  other_slots, changed = encode_and_render(variables, other_pixels, other_pixels)
+  assert np.abs(np.asarray(other_slots - slots)).max() > 1e-4
+  assert np.abs(np.asarray(changed.coarse.colour - out.coarse.colour)).max() > 1e-6
+  # With lifting on (the paper's model), the same pixel change moves the render at fixed slots.
+  model_on, inputs_on, variables_on = _setup("v1")
+  render_on = jit(lambda images: model_on.apply(
+      variables_on, model_on.apply(variables_on, **_sources(inputs_on), train=False,
+                                   method=model_on.encode),
+      **dict(_sources(inputs_on), source_images=images), ray_origins=inputs_on["ray_origins"],
+      ray_directions=inputs_on["ray_directions"], train=False, method=model_on.render_rays))
+  a, b = render_on(inputs_on["source_images"]), render_on(other_pixels["source_images"])
+  assert np.abs(np.asarray(a.coarse.colour - b.coarse.colour)).max() > 1e-6
+
+
+def test_runs_saved_before_the_switches_still_load():
+  """A run's saved config.json from before the switches lacks them: it reads as the defaults."""
+  from slotlifter_jax import checkpoints as ckpt_lib
+  import json
+  config = defaults.base_config()
+  saved = json.loads(config.to_json_best_effort())
+  for name in ("feature_lifting", "density_mode"):
+    del saved["model"][name]
+  ckpt_lib.check_compatible(config, saved, "old_run")  # no error
+  ablated = config.copy_and_resolve_references()
+  ablated.model.density_mode = "mlp"
+  with pytest.raises(ckpt_lib.CheckpointMismatchError, match="model.density_mode"):
+    ckpt_lib.check_compatible(ablated, saved, "old_run")
