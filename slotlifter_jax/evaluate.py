@@ -293,6 +293,8 @@ def _warn_other_differences(config, saved: dict) -> None:
   for section, ignore in (("data", ("root",)), ("render", ("chunk",))):
     a, b = saved.get(section, {}), current.get(section, {})
     for k in sorted(set(a) | set(b)):
+      if section == "render" and k.startswith("adaptive"):
+        continue  # how the evaluation renders (issue #7), like the chunk size
       if k not in ignore and json.dumps(a.get(k)) != json.dumps(b.get(k)):
         logging.warning("%s.%s differs from the training run: saved %r, now %r", section, k,
                         a.get(k), b.get(k))
@@ -396,10 +398,10 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
     raise FileExistsError(f"{metrics_path} exists; pass --overwrite to replace it")
   run = load_run(config, workdir, split=split, checkpoint=checkpoint, max_scenes=max_scenes)
   net = lpips_net_for(run.config)
-  renderer = render_views.SceneRenderer(run.model, run.config)
+  renderer = render_views.make_scene_renderer(run.model, run.config)  # render.adaptive switches
   t_setup = time.perf_counter() - t_start
 
-  per_scene, render_s, metric_s = [], [], []
+  per_scene, render_s, metric_s, num_views = [], [], [], []
   for scene in tqdm(run.scenes, desc=f"eval {split}", unit="scene", dynamic_ncols=True,
                     disable=not progress):
     t0 = time.perf_counter()
@@ -412,10 +414,12 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
                                    lpips_quirk=lpips_quirk, nv_ari_last_view=nv_ari_last_view))
     render_s.append(t1 - t0)
     metric_s.append(time.perf_counter() - t1)
+    num_views.append(len(views))
 
   keys = _ordered({k for d in per_scene for k in d})
   summary = {k: metrics.summarize([d.get(k, math.nan) for d in per_scene]) for k in keys}
   scene_s = np.add(render_s, metric_s)
+  view_s = np.divide(render_s, num_views)  # [scenes] seconds to render one view
   timing = {
       "total_s": time.perf_counter() - t_start,
       "setup_s": t_setup,  # config check, data loading, checkpoint restore
@@ -426,6 +430,9 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
       "first_scene_s": float(scene_s[0]),
       "render_s": float(np.sum(render_s)),
       "metrics_s": float(np.sum(metric_s)),
+      # Seconds to render one full view: the median over the scenes after the first (which also
+      # compiles the renderer), or the first when it is the only one.
+      "render_per_view_s": float(np.median(view_s[1:] if view_s.size > 1 else view_s)),
   }
   names = [s.name for s in run.scenes]
   result = EvalResult(split=split, summary=summary, per_scene=per_scene, scene_names=names,
@@ -450,6 +457,9 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
       "checkpoint": {"step": run.step, "path": run.checkpoint_dir},
       "quirks": {"lpips_quirk": bool(lpips_quirk), "nv_ari_last_view": bool(nv_ari_last_view)},
       "lpips_net": net,
+      # Adaptive rendering (issue #7) approximates the plain path; record that it was used.
+      "renderer": ({k: run.config.render[k] for k in run.config.render if k.startswith("adaptive")}
+                   if run.config.render.get("adaptive", False) else "plain"),
       "metrics": {k: {"mean": _finite_or_none(s.mean), "stderr": _finite_or_none(s.stderr),
                       "count": s.count, "skipped": s.skipped} for k, s in summary.items()},
       "definitions": _definitions(keys, lpips_net=net, lpips_quirk=lpips_quirk,

@@ -17,6 +17,9 @@ DIR/render/<split>/scene_XXXX_orbit.gif shows rendering | segmentation side by s
 circling the world z axis at the source camera's height and horizontal radius, looking at the
 origin (OpenCV cam2world, z up), starting at the source camera. A thin bar under the frames grows
 with the azimuth.
+
+With `render.adaptive` on, panels and orbits are rendered adaptively (slotlifter_jax.adaptive,
+issue #7); the per-slot renderings of a windowed pixel then composite that pixel's window.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 from tqdm import tqdm
 
+from slotlifter_jax import adaptive
 from slotlifter_jax import decoder as decoder_lib
 from slotlifter_jax import evaluate
 from slotlifter_jax import model as model_lib
@@ -73,20 +77,26 @@ def _last_pass_names(model: model_lib.SlotLifter) -> tuple[str, str]:
 
 
 def point_outputs(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded, *,
-                  sources: dict, ray_origins: jax.Array,
-                  ray_directions: jax.Array) -> PointOutputs:
+                  sources: dict, ray_origins: jax.Array, ray_directions: jax.Array,
+                  z: Optional[jax.Array] = None,
+                  last_delta: Optional[jax.Array] = None) -> PointOutputs:
   """`model.render_rays` at evaluation, also returning the last pass's per-sample colour and
   logits (captured from the allocation and colour modules, so nothing is recomputed).
 
   sources: source_images [B, V, H, W, 3] (in the model's colour range), source_cam_to_world,
-  source_intrinsics; rays [B, R, 3].
+  source_intrinsics; rays [B, R, 3]. With z [B, R, S'] (and last_delta [B, R]) the coarse pass at
+  those depths instead (`model.render_at_depths`, adaptive rendering).
   """
   alloc_name, colour_name = _last_pass_names(model)
   def wanted(module, method_name):
     return method_name == "__call__" and module.name in (alloc_name, colour_name)
+  if z is None:
+    method, extra = model.render_rays, dict(train=False)
+  else:
+    method, extra = model.render_at_depths, dict(z=z, last_delta=last_delta)
   out, state = model.apply({"params": params}, encoded, **sources, ray_origins=ray_origins,
-                           ray_directions=ray_directions, train=False, method=model.render_rays,
-                           capture_intermediates=wanted, mutable=["intermediates"])
+                           ray_directions=ray_directions, method=method,
+                           capture_intermediates=wanted, mutable=["intermediates"], **extra)
   captured = state["intermediates"]
   if alloc_name not in captured or colour_name not in captured:
     raise KeyError(f"model.py no longer names its last pass {alloc_name!r} / {colour_name!r}; "
@@ -110,17 +120,21 @@ def slot_densities(*, logits: jax.Array, log_scale: jax.Array) -> jax.Array:
                                   log_scale=log_scale)  # [..., K]
 
 
-def render_each_slot(points: PointOutputs, *, far: float,
-                     density_scale: float) -> render.RenderResult:
+def render_each_slot(points: PointOutputs, *, far: float, density_scale: float,
+                     last_delta: Optional[jax.Array] = None) -> render.RenderResult:
   """Volume rendering of every slot alone (module docstring): colour [B, R, K, 3], depth [B, R, K].
+
+  last_delta: None, or [B, R] the grid δ of the last sample of a window (adaptive rendering).
   """
   sigma = jnp.moveaxis(slot_densities(logits=points.logits, log_scale=points.log_density_scale),
                        -1, -2)  # [B, R, K, S]
   z = jnp.broadcast_to(points.render.z[..., None, :], sigma.shape)  # [B, R, K, S]
   colour = jnp.broadcast_to(points.colour[..., None, :, :],
                             sigma.shape + points.colour.shape[-1:])  # [B, R, K, S, 3]
+  if last_delta is not None:
+    last_delta = jnp.broadcast_to(last_delta[..., None], sigma.shape[:-1])  # [B, R, K]
   return render.volume_render(density=sigma, z=z, colour=colour, slot_weights=None, far=far,
-                              density_scale=density_scale)
+                              density_scale=density_scale, last_delta=last_delta)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,12 +146,48 @@ class CameraRenders:
   slot_colour: np.ndarray  # [n, H, W, K, 3] each slot rendered alone
 
 
+def slot_render_fn(model: model_lib.SlotLifter, params, encoded, sources: dict, *, signed: bool):
+  """adaptive.RenderFn of the panel's outputs: colour, depth, segmentation, per-slot colours."""
+  unit = (lambda c: (c + 1.0) * 0.5) if signed else (lambda c: c)
+  def fn(origins, directions, z, last_delta):
+    points = point_outputs(model, params, encoded, sources=sources, ray_origins=origins,
+                           ray_directions=directions, z=z, last_delta=last_delta)
+    final = points.render.coarse
+    slots = render_each_slot(points, far=model.far, density_scale=model.density_scale,
+                             last_delta=last_delta)
+    return (unit(final.colour), final.depth, final.segmentation, unit(slots.colour)), final.weights
+  return fn
+
+
 class SlotRenderer:
-  """Renders arbitrary cameras of a scene in fixed-size ray chunks, with per-slot renderings."""
+  """Renders arbitrary cameras of a scene in fixed-size ray chunks, with per-slot renderings;
+  adaptively (slotlifter_jax.adaptive) when `render.adaptive` is on."""
 
   def __init__(self, model: model_lib.SlotLifter, config: ml_collections.ConfigDict):
     self.signed = config.model.colour_range == "signed"
     self.chunk = int(config.render.chunk)
+    self.adaptive = None
+    if config.render.get("adaptive", False):
+      if int(config.render.num_fine_samples) > 0:
+        raise ValueError("render.adaptive: the model has a fine pass (DTU/ScanNet); adaptive "
+                         "rendering covers coarse-only models only, set render.adaptive=False")
+      self.adaptive = adaptive.AdaptiveSettings.from_config(config)
+      grid = adaptive.SampleGrid(near=model.near, far=model.far, num_samples=model.num_samples)
+      st = self.adaptive
+
+      @jax.jit
+      def proposal_chunk(params, encoded, sources, origins, directions):
+        fn = slot_render_fn(model, params, encoded, sources, signed=self.signed)
+        return adaptive.proposal_pass(fn, origins=origins, directions=directions, grid=grid,
+                                      mass_eps=st.mass_eps)
+
+      @jax.jit
+      def window_chunk(params, encoded, sources, origins, directions, start):
+        fn = slot_render_fn(model, params, encoded, sources, signed=self.signed)
+        return adaptive.window_pass(fn, origins=origins, directions=directions, start=start,
+                                    grid=grid, window=st.window)
+
+      self._proposal_chunk, self._window_chunk = proposal_chunk, window_chunk
 
     @jax.jit
     def render_chunk(params, encoded, sources, origins, directions):
@@ -159,10 +209,32 @@ class SlotRenderer:
     sources = self.sources(scene)
     encoded = self._encode(params, sources)
     height, width = scene.image_size
+    if self.adaptive is not None:
+      return self._render_adaptive(params, encoded, sources, cam_to_world=cam_to_world,
+                                   intrinsics=intrinsics, height=height, width=width)
     colour, depth, seg, slots = render_views.render_cameras(
         lambda o, d: self._render_chunk(params, encoded, sources, o, d),
         cam_to_world=cam_to_world, intrinsics=intrinsics, height=height, width=width,
         chunk=self.chunk)
+    k = seg.shape[-1]
+    return CameraRenders(colour=colour.reshape(-1, height, width, 3),
+                         depth=depth.reshape(-1, height, width),
+                         segmentation=seg.reshape(-1, height, width, k),
+                         slot_colour=slots.reshape(-1, height, width, k, 3))
+
+  def _render_adaptive(self, params, encoded, sources, *, cam_to_world, intrinsics, height,
+                       width) -> CameraRenders:
+    proposal_fn = lambda o, d: self._proposal_chunk(params, encoded, sources, o, d)
+    window_fn = lambda o, d, i0: self._window_chunk(params, encoded, sources, o, d, i0)
+    views = []
+    for c2w, k in zip(cam_to_world, intrinsics):
+      origins, directions = adaptive.camera_rays(cam_to_world=c2w, intrinsics=k, height=height,
+                                                 width=width)
+      outputs, _ = adaptive.render_view(proposal_fn=proposal_fn, window_fn=window_fn,
+                                        origins=origins, directions=directions, height=height,
+                                        width=width, settings=self.adaptive)
+      views.append(outputs)
+    colour, depth, seg, slots = (np.stack([v[i] for v in views]) for i in range(4))
     k = seg.shape[-1]
     return CameraRenders(colour=colour.reshape(-1, height, width, 3),
                          depth=depth.reshape(-1, height, width),
