@@ -1,0 +1,145 @@
+"""Speed/accuracy chart (issue #6): what rays, samples, resolution and encoder width buy.
+
+  python experiments/pareto.py --dry_run        # the plan and its estimated time, nothing run
+  python experiments/pareto.py                  # train + evaluate every point, then plot
+  python experiments/pareto.py --plot_only      # redraw from experiments/results/pareto.csv
+
+Base: configs/clevr.py:quick on the embedded clevr set (64², 32 samples, 2 scenes × 256 rays, the
+narrow ResNet-18-style encoder). Each point changes one axis of the base, plus one cheap corner,
+rather than the full product (POINTS below, 7 runs, one seed):
+  base          the quick config
+  rays512/1024  train.rays_per_scene 512 / 1024 (cost per step ∝ rays)
+  samples16     render.num_samples 16 (training and rendering ∝ samples)
+  res32         data.image_size 32 (its own 32² set; rendering ∝ pixels; metrics at 32²)
+  wide_encoder  encoder stem 64, widths (64, 128, 256), D = 64 (blocks stay (2, 2, 2))
+  cheap         32² and 16 samples together
+Every run trains --num_steps steps with the schedules scaled to the budget (study_common.py) and is
+evaluated on the first --eval_scenes test scenes. Per point the CSV holds training wall-clock
+seconds, render seconds per view, PSNR, ARI, FG-ARI, NV-ARI, NV-FG-ARI, active slots and the
+collapse flag; the figure plots novel-view PSNR and FG-ARI against training time and against render
+time per view, with the Pareto front (lower time, higher metric) as a step line and larger markers.
+Note that PSNR and ARI at 32² are measured at 32², so they are not the same task as at 64².
+
+Time: ≈ 65 min on the 2-core CPU for the defaults (1000 steps, 20 scenes), an estimate from the
+cost model in study_common.py (0.3 s per quick step, 2.6 s per 64² scene), not a measurement; the
+32² set is generated once (about a minute) before its first run. Runs live in --root (default
+runs/study/, shared with ablations.py and stability.py); a finished run is skipped, so running the
+script again resumes where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)
+
+from experiments import study_common as sc  # noqa: E402  (no JAX import)
+
+BASE = "configs/clevr.py:quick"
+WIDE_ENCODER = {"model.encoder_stem_width": 64, "model.encoder_widths": (64, 128, 256),
+                "model.feature_dim": 64}
+POINTS = {
+    "base": {},
+    "rays512": {"train.rays_per_scene": 512},
+    "rays1024": {"train.rays_per_scene": 1024},
+    "samples16": {"render.num_samples": 16},
+    "res32": {"data.image_size": 32},
+    "wide_encoder": WIDE_ENCODER,
+    "cheap": {"data.image_size": 32, "render.num_samples": 16},
+}
+# (CSV column, axis label) of the figure's rows and columns.
+METRICS = (("psnr_novel", "novel-view PSNR (dB)"), ("fg_ari", "FG-ARI"))
+COSTS = (("train_s", "training wall-clock (s)"), ("render_per_view_s", "render time per view (s)"))
+
+
+def plan(*, config: str = BASE, num_steps: int = 1000, seed: int = 0,
+         points: dict = POINTS) -> list[sc.Run]:
+  return [sc.Run(name=name, config=config, overrides=overrides, seed=seed, num_steps=num_steps)
+          for name, overrides in points.items()]
+
+
+def plot(rows: list[dict], out: str) -> None:
+  """2×2: METRICS (rows) against COSTS (columns); the Pareto front as a step line."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  fig, axes = plt.subplots(len(METRICS), len(COSTS), figsize=(10, 7.5), squeeze=False)
+  for i, (metric, metric_label) in enumerate(METRICS):
+    for j, (cost, cost_label) in enumerate(COSTS):
+      ax = axes[i][j]
+      xs = [float(r.get(cost, math.nan)) for r in rows]
+      ys = [float(r.get(metric, math.nan)) for r in rows]
+      front = sc.pareto_front(xs, ys)
+      ax.scatter(xs, ys, s=25, c="tab:gray", label="run")
+      if front:
+        fx, fy = [xs[k] for k in front], [ys[k] for k in front]
+        # Best value reachable at a given cost: flat until the next front point ("post").
+        ax.step(fx, fy, where="post", c="tab:red", lw=1.2, label="Pareto front")
+        ax.scatter(fx, fy, s=70, c="tab:red", zorder=3)
+      for x, y, r in zip(xs, ys, rows):
+        if not (math.isnan(x) or math.isnan(y)):
+          ax.annotate(str(r["name"]), (x, y), fontsize=7, xytext=(3, 3),
+                      textcoords="offset points")
+      ax.set_xscale("log")
+      ax.set_xlabel(cost_label)
+      ax.set_ylabel(metric_label)
+      ax.grid(alpha=0.3)
+      if i == 0 and j == 0:
+        ax.legend(fontsize=8)
+  steps = sorted({int(r["num_steps"]) for r in rows})
+  fig.suptitle(f"speed vs accuracy, {BASE} variations, {'/'.join(map(str, steps))} steps, "
+               f"{rows[0]['eval_scenes'] if rows else '?'} {rows[0]['eval_split'] if rows else ''} "
+               f"scenes", fontsize=10)
+  fig.tight_layout()
+  os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+  fig.savefig(out, dpi=90)
+  plt.close(fig)
+
+
+def parse_args(argv=None):
+  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  p.add_argument("--root", default=sc.DEFAULT_ROOT, help="where the run directories go")
+  p.add_argument("--results_dir", default=sc.RESULTS_DIR, help="where pareto.csv/.png go")
+  p.add_argument("--num_steps", type=int, default=1000, help="training budget per run")
+  p.add_argument("--eval_scenes", type=int, default=20, help="test scenes evaluated per run")
+  p.add_argument("--eval_split", default="test")
+  p.add_argument("--seed", type=int, default=0)
+  p.add_argument("--points", default=",".join(POINTS), help=f"subset of {list(POINTS)}")
+  p.add_argument("--dry_run", action="store_true", help="print the plan and estimate; run nothing")
+  p.add_argument("--plot_only", action="store_true", help="redraw from the CSV; run nothing")
+  return p.parse_args(argv)
+
+
+def main(argv=None) -> None:
+  args = parse_args(argv)
+  unknown = [n for n in args.points.split(",") if n not in POINTS]
+  if unknown:
+    raise SystemExit(f"unknown points {unknown}; choose from {list(POINTS)}")
+  points = {n: POINTS[n] for n in args.points.split(",")}
+  runs = plan(num_steps=args.num_steps, seed=args.seed, points=points)
+  csv_path = os.path.join(args.results_dir, "pareto.csv")
+  png_path = os.path.join(args.results_dir, "pareto.png")
+  if args.dry_run:
+    sc.print_plan(runs, root=args.root, eval_split=args.eval_split, eval_scenes=args.eval_scenes)
+    return
+  if not args.plot_only:
+    try:
+      sc.execute_all(runs, root=args.root, study="pareto", eval_split=args.eval_split,
+                     eval_scenes=args.eval_scenes, csv_path=csv_path)
+    except sc.TrainingStopped as e:
+      raise SystemExit(f"[pareto] {e}")
+  rows = sc.select_rows(sc.read_csv(csv_path), runs)
+  plot(rows, png_path)
+  print(f"[pareto] wrote {csv_path} and {png_path}")
+
+
+if __name__ == "__main__":
+  from slotlifter_jax import runtime  # no JAX import
+  if "--dry_run" not in sys.argv:
+    runtime.reexec_with_allocator()
+  runtime.set_xla_flags()
+  main()

@@ -1,0 +1,294 @@
+"""The study runner of issue #6 (experiments/study_common.py) and the scripts' pure summaries.
+
+One smoke training (configs/clevr.py:smoke, 6 steps) is shared by the runner tests through a
+module-scoped fixture; everything else is pure Python on small inputs.
+"""
+
+import csv
+import itertools
+import json
+import math
+import os
+import sys
+
+import numpy as np
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)
+
+from experiments import ablations  # noqa: E402
+from experiments import pareto  # noqa: E402
+from experiments import stability  # noqa: E402
+from experiments import study_common as sc  # noqa: E402
+from slotlifter_jax import evaluate  # noqa: E402
+from slotlifter_jax import schedules  # noqa: E402
+from slotlifter_jax import train  # noqa: E402
+
+SMOKE = "configs/clevr.py:smoke"
+
+
+# ---------------------------------------------------------------------------------------------
+# The runner on one smoke run.
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+  root = str(tmp_path_factory.mktemp("study"))
+  csv_path = os.path.join(root, "results", "study.csv")
+  # The "without random masking" ablation, so the override path is exercised end to end;
+  # 'unsafe_rbg' keys compile faster than threefry on XLA:CPU (compilation is most of this run).
+  run = sc.Run(name="no_masking", config=SMOKE,
+               overrides={"train.mask_max": 0.0, "train.prng_impl": "unsafe_rbg"}, seed=0,
+               num_steps=6)
+  kwargs = dict(root=root, study="test", eval_split="test", eval_scenes=1, csv_path=csv_path,
+                progress=False)
+  row = sc.execute(run, **kwargs)
+  return run, row, kwargs
+
+
+def _csv_rows(path):
+  with open(path, newline="") as f:
+    return list(csv.DictReader(f))
+
+
+def test_runner_trains_evaluates_and_records(smoke_run):
+  run, row, kwargs = smoke_run
+  run_dir = row["run_dir"]
+  assert os.path.dirname(run_dir) == kwargs["root"] and os.path.basename(run_dir) == row["run_id"]
+  assert row["run_id"].startswith("clevr-smoke-s0-n6-")
+  # Trained to the budget with the override applied, then evaluated on the capped split.
+  with open(os.path.join(run_dir, "config.json")) as f:
+    saved = json.load(f)
+  assert saved["train"]["mask_max"] == 0.0 and saved["train"]["num_steps"] == 6
+  assert saved["seed"] == 0
+  assert sc.latest_step(run_dir) == 6 and row["checkpoint_step"] == 6
+  assert row["eval_scenes"] == 1 and row["eval_split"] == "test"
+  # Timing: one training segment, stored in the run directory, and a per-view render time.
+  with open(os.path.join(run_dir, sc.TIMING_FILE)) as f:
+    timing = json.load(f)
+  assert len(timing["segments"]) == 1 and timing["segments"][0]["to_step"] == 6
+  assert row["train_s"] == timing["train_s"] > 0 and row["train_segments"] == 1
+  assert 0 < row["render_per_view_s"] < row["eval_s"]
+  assert row["step_s"] > 0
+  # Metrics from evaluate_split, and the collapse flag of the last validation (step 6).
+  for k in ("psnr_novel", "ari", "nv_ari", "active_slots"):
+    assert math.isfinite(row[k]), k
+  assert -1.0 <= row["ari"] <= 1.0 and row["psnr_novel"] > 0
+  assert row["collapsed"] in (0.0, 1.0) and row["collapse_step"] == 6
+  with open(os.path.join(run_dir, "metrics.jsonl")) as f:
+    last_val = [json.loads(l) for l in f if '"val"' in l][-1]
+  assert row["collapsed"] == last_val["collapsed"]  # 6 ≥ the settled step of the smoke config
+  # The result JSON and exactly one CSV row.
+  with open(sc.result_path(run_dir, "test", 1)) as f:
+    assert json.load(f)["run_id"] == row["run_id"]
+  rows = _csv_rows(kwargs["csv_path"])
+  assert len(rows) == 1 and rows[0]["run_id"] == row["run_id"]
+  assert float(rows[0]["psnr_novel"]) == pytest.approx(row["psnr_novel"])
+  assert json.loads(rows[0]["overrides"]) == dict(run.overrides)
+
+
+def test_finished_run_is_skipped_and_trained_run_only_evaluated(smoke_run, monkeypatch):
+  run, row, kwargs = smoke_run
+  run_dir = row["run_dir"]
+  result = sc.result_path(run_dir, "test", 1)
+  mtime = os.stat(result).st_mtime_ns
+  calls = {"train": 0, "eval": 0}
+  real_eval = evaluate.evaluate_split
+
+  def no_training(*a, **k):
+    calls["train"] += 1
+    raise AssertionError("retrained a finished run")
+
+  def counting_eval(*a, **k):
+    calls["eval"] += 1
+    return real_eval(*a, **k)
+
+  monkeypatch.setattr(train, "train_and_evaluate", no_training)
+  monkeypatch.setattr(evaluate, "evaluate_split", counting_eval)
+  again = sc.execute(run, **kwargs)
+  assert calls == {"train": 0, "eval": 0}
+  assert os.stat(result).st_mtime_ns == mtime
+  assert again["train_s"] == row["train_s"] and again["psnr_novel"] == row["psnr_novel"]
+  assert len(_csv_rows(kwargs["csv_path"])) == 1  # upserted, not appended twice
+
+  # Trained but not evaluated (the result lost): only the evaluation runs again.
+  os.remove(result)
+  redone = sc.execute(run, **kwargs)
+  assert calls == {"train": 0, "eval": 1}
+  assert redone["train_s"] == row["train_s"] and redone["train_segments"] == 1
+  assert redone["psnr_novel"] == pytest.approx(row["psnr_novel"], abs=1e-4)
+  assert len(_csv_rows(kwargs["csv_path"])) == 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Configs and bad input (no training).
+
+
+def test_bad_input_names_the_problem(tmp_path):
+  bad = lambda **kw: sc.Run(**dict(dict(name="x", config=SMOKE, overrides={}, seed=0,
+                                        num_steps=6), **kw))
+  with pytest.raises(sc.StudyError, match="'model.no_such_field'.*no field 'no_such_field'"):
+    sc.run_config(bad(overrides={"model.no_such_field": 1}))
+  with pytest.raises(sc.StudyError, match="'modell.num_slots'.*no section 'modell'"):
+    sc.run_config(bad(overrides={"modell.num_slots": 4}))
+  with pytest.raises(sc.StudyError, match="'seedx'"):
+    sc.run_config(bad(overrides={"seedx": 1}))
+  with pytest.raises(sc.StudyError, match="configs/nope.py"):
+    sc.run_config(bad(config="configs/nope.py:quick"))
+  with pytest.raises(sc.StudyError, match="unknown variant 'quik'"):
+    sc.run_config(bad(config="configs/clevr.py:quik"))
+  with pytest.raises(sc.StudyError, match="budget"):
+    sc.run_config(bad(overrides={"train.num_steps": 10}))
+  with pytest.raises(sc.StudyError, match="train.rays_per_scene"):
+    sc.run_config(bad(overrides={"train.rays_per_scene": "many"}))
+  # Nothing was created for a bad request.
+  with pytest.raises(sc.StudyError):
+    sc.execute(bad(overrides={"model.no_such_field": 1}), root=str(tmp_path))
+  assert os.listdir(tmp_path) == []
+
+
+def test_budget_scales_the_schedules_and_run_ids_follow_the_config():
+  quick = sc.load_config("configs/room_chair.py:quick").train
+  half = int(quick.num_steps) // 2
+  run = sc.Run(name="full", config="configs/room_chair.py:quick", overrides={}, seed=0,
+               num_steps=half)
+  c = sc.run_config(run)
+  t = c.train
+  fields = ("warmup_steps", "decay_steps", "mask_anneal_steps", "noise_anneal_steps",
+            "locality_steps")
+  # Half the budget, half of every schedule (the quick variant's are even numbers of steps).
+  assert [t[f] for f in fields] == [int(quick[f]) // 2 for f in fields]
+  assert (t.num_steps, t.eval_every) == (half, half // 2)
+  assert train.collapse_settled_step(t) < t.num_steps  # the last flag means collapse
+  assert c.data.family == "room" and c.model.num_slots == 5 and c.data.image_size == 64
+  # An override equal to the config's own value is the same run (stability.py shares
+  # ablations.py's `full`); another seed, budget or a real change is not.
+  rid = sc.run_id(run)
+  same = sc.Run(name="other", config=run.config, overrides={"model.feature_lifting": True},
+                seed=0, num_steps=half)
+  assert sc.run_id(same) == rid
+  assert stability.plan(seeds=[0])[0] == ablations.plan(seeds=[0])[0]
+  for other in (sc.Run(**dict(vars(run), seed=1)), sc.Run(**dict(vars(run), num_steps=999)),
+                sc.Run(**dict(vars(run), overrides={"train.mask_max": 0.0}))):
+    assert sc.run_id(other) != rid
+  assert sc.run_id(run, num_validations=3) != rid
+  with pytest.raises(sc.StudyError, match="no_such"):
+    sc.run_id(sc.Run(**dict(vars(run), overrides={"model.no_such": 1})))
+
+
+def test_ablation_variants_switch_what_they_name():
+  configs = {r.name: sc.run_config(r) for r in ablations.plan(seeds=[0])}
+  assert set(configs) == {"full", "no_lifting", "no_masking", "no_slot_density"}
+  full = configs["full"]
+  assert full.model.feature_lifting and full.model.density_mode == "slot"
+  assert full.train.mask_max == 0.99
+  assert not configs["no_lifting"].model.feature_lifting
+  assert configs["no_slot_density"].model.density_mode == "mlp"
+  # Without random masking: the keep ratio is exactly 1 at every step of the run and beyond.
+  t = configs["no_masking"].train
+  steps = np.arange(0, t.num_steps + 10)
+  keep = np.asarray(schedules.keep_ratio(steps, mask_max=t.mask_max,
+                                         anneal_steps=t.mask_anneal_steps))
+  assert np.all(keep == 1.0)
+  assert schedules.keep_ratio(0, mask_max=full.train.mask_max,
+                              anneal_steps=full.train.mask_anneal_steps) < 0.02
+  # Each variant differs from the full method in its named field only.
+  flat = lambda c: {f"{s}.{k}": v for s, d in c.to_dict().items() if isinstance(d, dict)
+                    for k, v in d.items()}
+  for name, overrides in ablations.VARIANTS.items():
+    diff = {k for k, v in flat(configs[name]).items() if flat(full)[k] != v}
+    assert diff == set(overrides), name
+
+
+# ---------------------------------------------------------------------------------------------
+# Pure summaries.
+
+
+def _front_brute_force(costs, values):
+  ok = [i for i in range(len(costs)) if not (math.isnan(costs[i]) or math.isnan(values[i]))]
+  front = []
+  for i in ok:
+    dominated = any(costs[j] <= costs[i] and values[j] >= values[i]
+                    and (costs[j] < costs[i] or values[j] > values[i]) for j in ok)
+    if not dominated:
+      front.append(i)
+  return sorted(front, key=lambda i: (costs[i], -values[i], i))
+
+
+def test_pareto_front_matches_brute_force():
+  rng = np.random.default_rng(0)
+  for trial in range(300):
+    n = int(rng.integers(0, 13))
+    # Small integer grids make ties in cost, in value and whole duplicate points common.
+    costs = rng.integers(0, 5, n).astype(float)
+    values = rng.integers(0, 5, n).astype(float)
+    if trial % 3 == 0:
+      costs, values = rng.uniform(0, 1, n), rng.uniform(0, 1, n)
+    if n and trial % 5 == 0:
+      values[rng.integers(n)] = math.nan
+    got = sc.pareto_front(list(costs), list(values))
+    want = _front_brute_force(list(costs), list(values))
+    assert sorted(got) == sorted(want), (costs, values)
+    assert [costs[i] for i in got] == sorted(costs[i] for i in got)  # ordered by cost
+  assert sc.pareto_front([3.0, 1.0, 2.0], [1.0, 0.5, 2.0]) == [1, 2]
+
+
+def test_ablation_aggregation_against_a_hand_computed_example():
+  nan = math.nan
+  rows = [
+      dict(name="full", psnr_novel=20.0, fg_ari=0.50, collapsed=0.0),
+      dict(name="full", psnr_novel=22.0, fg_ari=nan, collapsed=1.0),
+      dict(name="full", psnr_novel=24.0, fg_ari=0.70, collapsed=0.0),
+      dict(name="no_masking", psnr_novel=18.0, fg_ari=0.10, collapsed=1.0),
+      dict(name="no_masking", psnr_novel=19.0, fg_ari=0.30, collapsed=""),  # flag unknown
+  ]
+  groups = sc.aggregate(rows, metrics=["psnr_novel", "fg_ari"], order=["no_masking", "full"])
+  assert [g["name"] for g in groups] == ["no_masking", "full"]
+  nm, full = groups
+  # full: PSNR 20, 22, 24 → mean 22, sample std 2; FG-ARI NaN skipped → 0.6 ± 0.1414 (n = 2).
+  assert full["psnr_novel"] == sc.Stat(3, 22.0, 2.0, 20.0, 24.0)
+  assert full["fg_ari"].n == 2 and full["fg_ari"].mean == pytest.approx(0.6)
+  assert full["fg_ari"].std == pytest.approx(math.sqrt(0.02))
+  assert full["collapse_rate"] == pytest.approx(1 / 3) and full["collapsed_runs"] == 1
+  assert nm["collapse_rate"] == 1.0 and (nm["collapsed_runs"], nm["flagged_runs"]) == (1, 1)
+  assert nm["psnr_novel"].mean == 18.5 and nm["psnr_novel"].std == pytest.approx(0.70710678)
+  table = sc.markdown_table(groups, columns=[("psnr_novel", "PSNR", 1.0, 2),
+                                             ("fg_ari", "FG-ARI", 100.0, 1)])
+  lines = table.splitlines()
+  assert lines[0] == "| name | runs | PSNR | FG-ARI | collapse rate |"
+  assert lines[2] == "| no_masking | 2 | 18.50 ± 0.71 | 20.0 ± 14.1 | 1/1 (100%) |"
+  assert lines[3] == "| full | 3 | 22.00 ± 2.00 | 60.0 ± 14.1 | 1/3 (33%) |"
+  assert sc.format_stat(sc.stat([5.0]), digits=1) == "5.0"  # one run: no spread
+  assert sc.format_stat(sc.stat([nan]), digits=1) == "–"
+  assert sc.format_stat(full["psnr_novel"], digits=0, extremes=True) == "22 ± 2 [20, 24]"
+
+
+def test_study_tables_and_figure_from_rows(tmp_path):
+  """ablations.md / stability.md / pareto.png from synthetic rows (no training)."""
+  rng = np.random.default_rng(1)
+  rows = []
+  for i, (name, _) in enumerate(itertools.product(ablations.VARIANTS, range(3))):
+    rows.append(dict(name=name, seed=i % 3, num_steps=1000, eval_scenes=20, eval_split="test",
+                     run_id=f"r{i}", train_s=float(100 + 10 * i), step_s=0.3,
+                     render_per_view_s=float(rng.uniform(0.1, 1)),
+                     psnr_novel=float(rng.uniform(15, 25)), ari=0.5, fg_ari=0.4, nv_ari=0.45,
+                     nv_fg_ari=0.3, active_slots=3.0, collapsed=float(i % 4 == 0)))
+  text = ablations.table(rows)
+  assert "| full | 3 |" in text and "| no_slot_density | 3 |" in text
+  assert text.index("| full |") < text.index("| no_lifting |")  # the paper's order
+  assert "50.0 ± 0.0" in text  # ARI ×100
+  text = stability.table([r for r in rows if r["name"] == "full"])
+  assert "[" in text and text.count("\n| ") >= 1 + 3 + 1
+  out = str(tmp_path / "pareto.png")
+  pareto.plot(rows[:7], out)
+  assert os.path.getsize(out) > 10_000
+
+
+def test_upsert_csv_is_keyed_by_run_id(tmp_path):
+  path = str(tmp_path / "r" / "x.csv")
+  sc.upsert_csv(path, [dict(run_id="a", psnr_novel=1.0), dict(run_id="b", psnr_novel=2.0)])
+  sc.upsert_csv(path, [dict(run_id="b", psnr_novel=3.0, extra="e")])
+  rows = sc.read_csv(path)
+  assert [(r["run_id"], r["psnr_novel"]) for r in rows] == [("a", 1.0), ("b", 3.0)]
+  assert rows[1]["extra"] == "e" and not os.path.exists(path + ".tmp")
