@@ -146,7 +146,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   sampler = pipeline.BatchSampler(
       train_scenes, num_source_views=config.data.num_source_views,
       batch_scenes=config.train.batch_scenes, rays_per_scene=config.train.rays_per_scene,
-      novel_ray_prob=config.data.novel_ray_prob, seed=config.seed)
+      novel_ray_prob=config.data.novel_ray_prob, seed=config.seed,
+      ray_sampling=config.data.ray_sampling, contrast_mix=config.data.contrast_mix)
   model = model_lib.build_model(config)
   key = jax.random.key(config.seed, impl=config.train.prng_impl)
   state = step_lib.init_state(model, config, sampler.batch(0), jax.random.fold_in(key, 0))

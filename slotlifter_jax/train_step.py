@@ -59,9 +59,15 @@ def make_optimizer(train_config) -> optax.GradientTransformation:
   def lion(lr):
     # optax.lion applies decoupled weight decay scaled by the lr, as the official Lion does.
     return optax.lion(lr, b1=c.b1, b2=c.b2, weight_decay=c.weight_decay)
+  def adamw(lr):
+    return optax.adamw(lr, b1=c.b1, b2=c.adam_b2, weight_decay=c.weight_decay)
+  optimizers = {"lion": lion, "adamw": adamw}
+  if c.optimizer not in optimizers:
+    raise ValueError(f"train.optimizer is {c.optimizer!r}; use one of {sorted(optimizers)}")
+  make = optimizers[c.optimizer]
   return optax.chain(
       optax.clip_by_global_norm(c.grad_clip),
-      optax.multi_transform({"backbone": lion(backbone_lr), "head": lion(head_lr)}, param_groups),
+      optax.multi_transform({"backbone": make(backbone_lr), "head": make(head_lr)}, param_groups),
   )
 
 

@@ -226,3 +226,57 @@ def test_prefetch_stops_cleanly_and_reraises():
     next(it)
   it.close()
   assert not any(t.name == "batch-prefetch" and t.is_alive() for t in threading.enumerate())
+
+
+def test_weighted_choice_matches_sequential_sampling_without_replacement():
+  # Reference: draw one index at a time with probability ∝ p among those not yet drawn. The
+  # probability that index i is drawn first and j second is p_i·p_j/(1 − p_i); compare the
+  # empirical frequencies of the ordered pair with those of the Gumbel top-k draw (k = 2).
+  probs = np.array([0.5, 0.2, 0.15, 0.1, 0.05])
+  rng = np.random.default_rng(0)
+  n = 40_000
+  counts = np.zeros(len(probs))  # how often each index is among the two drawn
+  for _ in range(n):
+    counts[pipeline.weighted_choice_without_replacement(rng, probs=probs, size=2)] += 1
+  p_second = np.array([sum(probs[j] * probs[i] / (1 - probs[j]) for j in range(len(probs)) if j != i)
+                       for i in range(len(probs))])
+  np.testing.assert_allclose(counts / n, probs + p_second, atol=0.01)
+  picks = pipeline.weighted_choice_without_replacement(rng, probs=np.array([0.0, 1.0, 0.0, 1.0]),
+                                                       size=2)
+  assert sorted(picks.tolist()) == [1, 3]  # zero-probability entries only after all others
+
+
+def test_contrast_sampling_favours_pixels_far_from_the_median_colour():
+  # A grey view with a 2×3 red patch: contrast sampling puts about `mix` of the rays (plus the
+  # uniform share of the patch's pixels) on the patch; uniform sampling puts 6/35 there.
+  scene = make_scene("patch", views=2)
+  images = np.full_like(scene.images, 0.5)
+  images[:, 1:3, 2:5] = (0.9, 0.1, 0.1)
+  scene = Scene(name="patch", images=images, cam_to_world=scene.cam_to_world,
+                intrinsics=scene.intrinsics, source_indices=(0,))
+  on_patch = {}
+  for mode, mix in [("uniform", 0.5), ("contrast", 0.5), ("contrast", 0.9)]:
+    sampler = pipeline.BatchSampler([scene], batch_scenes=1, rays_per_scene=5, num_source_views=1,
+                                    novel_ray_prob=0.0, seed=1, ray_sampling=mode, contrast_mix=mix)
+    draws = [sampler.draw(t) for t in range(400)]
+    on_patch[(mode, mix)] = np.mean([
+        ((1 <= d.ray_rows) & (d.ray_rows < 3) & (2 <= d.ray_cols) & (d.ray_cols < 5)).mean()
+        for d in draws])
+    d = draws[-1]
+    assert len({(v, r, c) for v, r, c in zip(d.ray_views[0], d.ray_rows[0], d.ray_cols[0])}) == 5
+  assert abs(on_patch[("uniform", 0.5)] - 6 / 35) < 0.03
+  assert on_patch[("contrast", 0.5)] > 0.45
+  assert on_patch[("contrast", 0.9)] > on_patch[("contrast", 0.5)] + 0.1
+  with pytest.raises(ValueError, match="ray_sampling"):
+    pipeline.BatchSampler([scene], batch_scenes=1, rays_per_scene=5, num_source_views=1,
+                          novel_ray_prob=0.0, seed=1, ray_sampling="edges")
+
+
+def test_uniform_sampling_is_unchanged_by_the_contrast_option():
+  scenes = [make_scene(f"s{i}", seed=i) for i in range(3)]
+  a = sampler_for(scenes).draw(5)
+  b = pipeline.BatchSampler(scenes, batch_scenes=2, rays_per_scene=13, num_source_views=1,
+                            novel_ray_prob=0.75, seed=3, ray_sampling="uniform",
+                            contrast_mix=0.9).draw(5)
+  for field in ("scene_index", "ray_views", "ray_rows", "ray_cols"):
+    np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
