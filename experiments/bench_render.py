@@ -1,8 +1,7 @@
 """Adaptive full-view rendering (issue #7, slotlifter_jax/adaptive.py): speed against the plain
 path, and quality at that speed on a trained model.
 
-  export SLOTLIFTER_DATA_CACHE=/work/cache_quick      # the cached quick test split
-  python experiments/bench_render.py                  # ~15 min on 2 cores
+  python experiments/bench_render.py --workdir=runs/clevr_quick   # ~15 min on 2 cores
   python experiments/bench_render.py --scenes=5 --skip_timing --skip_context
 
 Three parts, each renderer pair in one process so the ratio is trustworthy on a noisy machine
@@ -15,7 +14,7 @@ Three parts, each renderer pair in one process so the ratio is trustworthy on a 
    with the fallback off here: its fixed-shape passes are what is timed, because a random-init
    model's density is spread along every ray and would send nearly every pixel to the fallback.
    The trained model's fallback share and its cost are measured in part 2.
-2. Quality, the trained quick model (--workdir, default /work/runs/q_ld3) on --scenes test
+2. Quality, the trained quick model (--workdir, default runs/clevr_quick) on --scenes test
    scenes, every view: novel-view PSNR, ARI / FG-ARI (source view) and NV-ARI / NV-FG-ARI of the
    plain path and of each --settings entry (stride:window:eps:fallback), their differences, the
    share of pixels whose argmax slot differs, the overflow and fallback shares, the decoder work
@@ -48,7 +47,7 @@ sys.path.insert(0, REPO)
 from slotlifter_jax import runtime  # noqa: E402  (no JAX import)
 from experiments import bench_common  # noqa: E402
 
-flags.DEFINE_string("workdir", "/work/runs/q_ld3", "A trained configs/clevr.py:quick run.")
+flags.DEFINE_string("workdir", "runs/clevr_quick", "A trained configs/clevr.py:quick run (the README's first command).")
 flags.DEFINE_string("checkpoint", "", "Checkpoint of --workdir: '' (best, else latest), best, "
                     "latest or a step.")
 flags.DEFINE_integer("scenes", 20, "Test scenes for the quality part.")
