@@ -19,8 +19,8 @@ training budget (steps). `execute(run, root=...)`:
 A run whose result JSON exists is skipped; a run with a finished training but no result is only
 evaluated. So re-running a study script resumes where it stopped.
 
-Why the schedules follow the budget: configs/*.py:quick anneal masking and slot noise over 2000 of
-4000 steps. Cut to 1000 steps without scaling, a run would stop with a third of its rays still
+Why the schedules follow the budget: configs/*.py:quick anneal masking and slot noise over 3000 of
+6500 steps. Cut to 1000 steps without scaling, a run would stop with most of its rays still
 masked and the locality constraint on, and the "without random masking" ablation would compare a
 finished method against an unfinished one. Scaling keeps every run a complete, compressed version
 of its method (pass scale_schedules=False to turn this off).
