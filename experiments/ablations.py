@@ -102,16 +102,12 @@ def main(argv=None) -> None:
               variants={n: VARIANTS[n] for n in args.variants.split(",")})
   csv_path = os.path.join(args.results_dir, "ablations.csv")
   md_path = os.path.join(args.results_dir, "ablations.md")
-  if args.dry_run:
-    sc.print_plan(runs, root=args.root, eval_split=args.eval_split, eval_scenes=args.eval_scenes)
+  rows = sc.run_study(runs, study="ablations", root=args.root, eval_split=args.eval_split,
+                      eval_scenes=args.eval_scenes, csv_path=csv_path, dry_run=args.dry_run,
+                      from_csv_only=args.table_only)
+  if rows is None:
     return
-  if not args.table_only:
-    try:
-      sc.execute_all(runs, root=args.root, study="ablations", eval_split=args.eval_split,
-                     eval_scenes=args.eval_scenes, csv_path=csv_path)
-    except sc.TrainingStopped as e:
-      raise SystemExit(f"[ablations] {e}")
-  text = table(sc.select_rows(sc.read_csv(csv_path), runs), config=args.config)
+  text = table(rows, config=args.config)
   sc.write_text(md_path, text)
   print(text)
   print(f"[ablations] wrote {csv_path} and {md_path}")

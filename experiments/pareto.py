@@ -123,16 +123,11 @@ def main(argv=None) -> None:
   runs = plan(num_steps=args.num_steps, seed=args.seed, points=points)
   csv_path = os.path.join(args.results_dir, "pareto.csv")
   png_path = os.path.join(args.results_dir, "pareto.png")
-  if args.dry_run:
-    sc.print_plan(runs, root=args.root, eval_split=args.eval_split, eval_scenes=args.eval_scenes)
+  rows = sc.run_study(runs, study="pareto", root=args.root, eval_split=args.eval_split,
+                      eval_scenes=args.eval_scenes, csv_path=csv_path, dry_run=args.dry_run,
+                      from_csv_only=args.plot_only)
+  if rows is None:
     return
-  if not args.plot_only:
-    try:
-      sc.execute_all(runs, root=args.root, study="pareto", eval_split=args.eval_split,
-                     eval_scenes=args.eval_scenes, csv_path=csv_path)
-    except sc.TrainingStopped as e:
-      raise SystemExit(f"[pareto] {e}")
-  rows = sc.select_rows(sc.read_csv(csv_path), runs)
   plot(rows, png_path)
   print(f"[pareto] wrote {csv_path} and {png_path}")
 

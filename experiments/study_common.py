@@ -459,6 +459,25 @@ def execute_all(runs: Sequence[Run], **kwargs) -> list[dict]:
   return rows
 
 
+def run_study(runs: Sequence[Run], *, study: str, root: str, eval_split: str,
+              eval_scenes: Optional[int], csv_path: str, dry_run: bool,
+              from_csv_only: bool) -> Optional[list[dict]]:
+  """What every study script's main does with its plan: print it (`dry_run`, returns None), or
+  train and evaluate what is not finished yet (unless `from_csv_only`), then return the CSV rows
+  that belong to `runs`. A training run that stops (non-finite loss, signal) ends the script with
+  its message; finished runs stay recorded for the next call."""
+  if dry_run:
+    print_plan(runs, root=root, eval_split=eval_split, eval_scenes=eval_scenes)
+    return None
+  if not from_csv_only:
+    try:
+      execute_all(runs, root=root, study=study, eval_split=eval_split, eval_scenes=eval_scenes,
+                  csv_path=csv_path)
+    except TrainingStopped as e:
+      raise SystemExit(f"[{study}] {e}")
+  return select_rows(read_csv(csv_path), runs)
+
+
 # ---------------------------------------------------------------------------------------------
 # Pure summaries (tested in tests/test_study.py)
 
