@@ -1,7 +1,8 @@
 """Rendering whole views of a scene with a trained model, chunk by chunk.
 
 The slots are computed once per scene (`SlotLifter.encode`) and the rays of a view are decoded in
-chunks of fixed size (the last chunk padded), so one compiled function serves every view size.
+chunks of fixed size (the last chunk padded), so one compiled function serves every view of a
+size; a view with fewer rays than a chunk is one chunk of exactly its rays.
 """
 
 from __future__ import annotations
@@ -47,10 +48,12 @@ def render_cameras(render_chunk, *, cam_to_world, intrinsics, height: int, width
 
   `render_chunk` returns a tuple of [1, chunk, ...] arrays; the result holds, per tuple entry, an
   array [n, H·W, ...]. The last chunk repeats its last ray, so one compiled shape serves any size,
-  and cameras go one at a time to bound memory.
+  and cameras go one at a time to bound memory. The chunk shrinks to H·W for a smaller view: a
+  32² view padded to a 4096-ray chunk cost as much as a 64² one (experiments/README.md, pareto).
   """
   pix = geometry.image_pixels(height, width).reshape(-1, 2)  # [H·W, 2]
   n = height * width
+  chunk = min(int(chunk), n)
   pad = (-n) % chunk
   per_camera = []
   for c2w, k in zip(cam_to_world, intrinsics):

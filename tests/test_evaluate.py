@@ -22,6 +22,7 @@ from data_fixtures import look_at
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import decoder as decoder_lib
 from slotlifter_jax import evaluate
+from slotlifter_jax import geometry
 from slotlifter_jax import render
 from slotlifter_jax import render_mode
 from slotlifter_jax import render_views
@@ -65,6 +66,31 @@ def _psnr(a, b):
 def _fg_ari(true, pred):
   fg = true != 0
   return adjusted_rand_score(true[fg], pred[fg])
+
+
+@pytest.mark.parametrize("height,width,chunk", [(6, 5, 8), (6, 5, 64), (4, 4, 16)])
+def test_render_cameras_covers_every_pixel_once_in_order(height, width, chunk):
+  """Chunks (padded, or one exact chunk for a view smaller than `chunk`) give every pixel its own
+  ray's result in row-major order, against geometry.pixel_rays on all pixels at once."""
+  cams = np.stack([look_at(np.array([2.0, 0.5, 1.0])), look_at(np.array([0.3, -2.0, 1.5]))])
+  intr = np.array([[4.0, 0, (width - 1) / 2], [0, 4.0, (height - 1) / 2], [0, 0, 1]], np.float32)
+  sizes = []
+
+  def fn(origins, directions):  # [1, c, 3] each → per-ray values
+    sizes.append(origins.shape[1])
+    return origins + 2.0 * directions, directions[..., 0]
+
+  points, first = render_views.render_cameras(
+      fn, cam_to_world=cams, intrinsics=[intr, intr], height=height, width=width, chunk=chunk)
+  n = height * width
+  assert points.shape == (2, n, 3) and first.shape == (2, n)
+  assert set(sizes) == {min(chunk, n)}  # one compiled shape; no padding beyond the view
+  pix = geometry.image_pixels(height, width).reshape(-1, 2)
+  for c in range(2):
+    rays = geometry.pixel_rays(cam_to_world=jnp.asarray(cams[c], jnp.float32),
+                               intrinsics=jnp.asarray(intr), pix=pix)
+    np.testing.assert_allclose(points[c], rays.origins + 2.0 * rays.directions, atol=1e-6)
+    np.testing.assert_allclose(first[c], rays.directions[:, 0], atol=1e-6)
 
 
 def test_scene_metrics_splits_views_and_skips_as_the_protocol_says():
