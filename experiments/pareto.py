@@ -30,9 +30,11 @@ script again resumes where it stopped.
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
+import time
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
@@ -40,6 +42,7 @@ sys.path.insert(0, REPO)
 from experiments import study_common as sc  # noqa: E402  (no JAX import)
 
 BASE = "configs/clevr.py:quick"
+NUM_STEPS = 600  # per run: the seven points in about 45 min (experiments/README.md)
 WIDE_ENCODER = {"model.encoder_stem_width": 64, "model.encoder_widths": (64, 128, 256),
                 "model.feature_dim": 64}
 POINTS = {
@@ -56,7 +59,7 @@ METRICS = (("psnr_novel", "novel-view PSNR (dB)"), ("fg_ari", "FG-ARI"))
 COSTS = (("train_s", "training wall-clock (s)"), ("render_per_view_s", "render time per view (s)"))
 
 
-def plan(*, config: str = BASE, num_steps: int = 1000, seed: int = 0,
+def plan(*, config: str = BASE, num_steps: int = NUM_STEPS, seed: int = 0,
          points: dict = POINTS) -> list[sc.Run]:
   return [sc.Run(name=name, config=config, overrides=overrides, seed=seed, num_steps=num_steps)
           for name, overrides in points.items()]
@@ -100,11 +103,56 @@ def plot(rows: list[dict], out: str) -> None:
   plt.close(fig)
 
 
+def _cell(value, digits: int) -> str:
+  try:
+    value = float(value)
+  except (TypeError, ValueError):  # an empty CSV cell
+    return "–"
+  return "–" if math.isnan(value) else f"{value:.{digits}f}"
+
+
+def table(rows: list[dict]) -> str:
+  """pareto.md: one row per point; '*' marks the points on the PSNR / FG-ARI fronts over
+  training time (the figure's left column), `R` those over render time (its right column)."""
+  marks = {}
+  for metric, _ in METRICS:
+    for cost, tag in (("train_s", "*"), ("render_per_view_s", "R")):
+      front = sc.pareto_front([float(r.get(cost, math.nan)) for r in rows],
+                              [float(r.get(metric, math.nan)) for r in rows])
+      for k in front:
+        marks.setdefault((k, metric), set()).add(tag)
+  steps = sorted({int(r["num_steps"]) for r in rows})
+  head = (f"# Speed vs accuracy ({BASE} variations, {'/'.join(map(str, steps))} steps, "
+          f"{rows[0]['eval_scenes'] if rows else '?'} {rows[0]['eval_split'] if rows else ''} "
+          f"scenes per run)\n\n"
+          f"Training time includes compilation and in-training validation; render time is one full "
+          f"view at evaluation. * on the front over training time, R over render time. Written by "
+          f"experiments/pareto.py on {time.strftime('%Y-%m-%d %H:%M')}.\n\n")
+  cols = ["point", "overrides", "train s", "s/step", "render s/view", "PSNR (dB)", "SSIM",
+          "FG-ARI", "NV-ARI", "active slots", "collapsed"]
+  lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+  for k, r in enumerate(rows):
+    mark = lambda m: "".join(sorted(marks.get((k, m), ())))
+    overrides = r.get("overrides", {})
+    if isinstance(overrides, str):
+      overrides = json.loads(overrides or "{}")
+    lines.append("| " + " | ".join([
+        str(r["name"]), ", ".join(f"{a}={b}" for a, b in overrides.items()) or "–",
+        _cell(r.get("train_s", math.nan), 0), _cell(r.get("step_s", math.nan), 3),
+        _cell(r.get("render_per_view_s", math.nan), 2),
+        _cell(r.get("psnr_novel", math.nan), 2) + mark("psnr_novel"),
+        _cell(r.get("ssim", math.nan), 3),
+        _cell(r.get("fg_ari", math.nan), 3) + mark("fg_ari"),
+        _cell(r.get("nv_ari", math.nan), 3), _cell(r.get("active_slots", math.nan), 2),
+        _cell(r.get("collapsed", math.nan), 0)]) + " |")
+  return head + "\n".join(lines) + "\n"
+
+
 def parse_args(argv=None):
   p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   p.add_argument("--root", default=sc.DEFAULT_ROOT, help="where the run directories go")
-  p.add_argument("--results_dir", default=sc.RESULTS_DIR, help="where pareto.csv/.png go")
-  p.add_argument("--num_steps", type=int, default=1000, help="training budget per run")
+  p.add_argument("--results_dir", default=sc.RESULTS_DIR, help="where pareto.csv/.md/.png go")
+  p.add_argument("--num_steps", type=int, default=NUM_STEPS, help="training budget per run")
   p.add_argument("--eval_scenes", type=int, default=20, help="test scenes evaluated per run")
   p.add_argument("--eval_split", default="test")
   p.add_argument("--seed", type=int, default=0)
@@ -123,13 +171,17 @@ def main(argv=None) -> None:
   runs = plan(num_steps=args.num_steps, seed=args.seed, points=points)
   csv_path = os.path.join(args.results_dir, "pareto.csv")
   png_path = os.path.join(args.results_dir, "pareto.png")
+  md_path = os.path.join(args.results_dir, "pareto.md")
   rows = sc.run_study(runs, study="pareto", root=args.root, eval_split=args.eval_split,
                       eval_scenes=args.eval_scenes, csv_path=csv_path, dry_run=args.dry_run,
                       from_csv_only=args.plot_only)
   if rows is None:
     return
   plot(rows, png_path)
-  print(f"[pareto] wrote {csv_path} and {png_path}")
+  text = table(rows)
+  sc.write_text(md_path, text)
+  print(text)
+  print(f"[pareto] wrote {csv_path}, {md_path} and {png_path}")
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
 from experiments import ablations  # noqa: E402
+from experiments import diagnose_slots  # noqa: E402
 from experiments import pareto  # noqa: E402
 from experiments import stability  # noqa: E402
 from experiments import study_common as sc  # noqa: E402
@@ -283,6 +284,14 @@ def test_study_tables_and_figure_from_rows(tmp_path):
   out = str(tmp_path / "pareto.png")
   pareto.plot(rows[:7], out)
   assert os.path.getsize(out) > 10_000
+  points = [dict(r, name=n, overrides=json.dumps(o))  # overrides as the CSV holds them
+            for r, (n, o) in zip(rows, pareto.POINTS.items())]
+  points[1].update(train_s=50.0, psnr_novel=30.0)  # cheapest and best: alone on the PSNR front
+  lines = pareto.table(points).splitlines()
+  body = [l for l in lines if l.startswith("| ") and not l.startswith("| point")]
+  assert len(body) == len(pareto.POINTS)
+  assert "| rays512 | train.rays_per_scene=512 | 50 |" in body[1] and "30.00*" in body[1]
+  assert not any("*" in l.split("|")[6] for l in body if l is not body[1])
 
 
 def test_upsert_csv_is_keyed_by_run_id(tmp_path):
@@ -292,3 +301,26 @@ def test_upsert_csv_is_keyed_by_run_id(tmp_path):
   rows = sc.read_csv(path)
   assert [(r["run_id"], r["psnr_novel"]) for r in rows] == [("a", 1.0), ("b", 3.0)]
   assert rows[1]["extra"] == "e" and not os.path.exists(path + ".tmp")
+
+
+def test_attention_segmentation_and_slot_cosine_against_references():
+  rng = np.random.default_rng(3)
+  attn = rng.random((5, 4 * 6))  # K = 5 slots over a 4×6 feature map
+  labels = diagnose_slots.attention_segmentation(attn, feature_hw=(4, 6), image_hw=(16, 24))
+  for y, x in itertools.product(range(16), range(24)):  # pixel → its feature cell, by hand
+    assert labels[y, x] == attn[:, (y // 4) * 6 + x // 4].argmax()
+  with pytest.raises(ValueError, match="not a multiple"):
+    diagnose_slots.attention_segmentation(attn, feature_hw=(4, 6), image_hw=(15, 24))
+  x = rng.normal(size=(6, 7))
+  pairs = [np.dot(x[i], x[j]) / np.linalg.norm(x[i]) / np.linalg.norm(x[j])
+           for i, j in itertools.combinations(range(6), 2)]
+  assert diagnose_slots.mean_pairwise_cosine(x) == pytest.approx(np.mean(pairs), abs=1e-12)
+  assert diagnose_slots.mean_pairwise_cosine(np.ones((3, 4))) == pytest.approx(1.0)
+
+
+def test_diagnose_slots_runs_on_a_trained_run(smoke_run, capsys):
+  _, row, _ = smoke_run
+  diagnose_slots.main([f"--workdir={row['run_dir']}", "--split=test", "--scenes=1",
+                       "--checkpoint=latest"])
+  out = capsys.readouterr().out
+  assert "step 6, 1 test scenes, K = 4" in out and "2D FG-ARI" in out and "key cosine" in out
