@@ -22,12 +22,12 @@ collapse, slotlifter_jax/collapse.py). Collapsed runs count in the means, as see
 
 The paper's figures (Room-Diverse, 128², 250k steps): without feature lifting PSNR 28.20 / NV-ARI
 71.4; without random masking FG-ARI 43.6 and collapsing runs; without slot density FG-ARI 77.3.
-A 1000-step CPU budget is a different regime: read the table as the same ablation at a small
-budget, not as a reproduction.
+A 600-step CPU budget is a different regime: read the table as the same ablation at a small
+budget, not as a reproduction (at 600 steps no variant splits objects: experiments/README.md).
 
-Time: ≈ 90 min on the 2-core CPU for the defaults (4 variants × 3 seeds × 1000 steps, 20 scenes),
-an estimate from the cost model in study_common.py (0.3 s per quick step, 2.6 s per 64² scene),
-not a measurement. Runs live in --root (default runs/study/, shared with stability.py, which
+Time: 63 min measured on the 2-core CPU for the defaults (4 variants × 3 seeds × 600 steps, 20
+scenes; 20:11–21:14 on 2026-11-22); --dry_run prints an estimate from the cost model in
+study_common.py. Runs live in --root (default runs/study/, shared with stability.py, which
 reuses the `full` runs); a finished run is skipped, so running the script again resumes.
 """
 
@@ -44,7 +44,7 @@ sys.path.insert(0, REPO)
 from experiments import study_common as sc  # noqa: E402  (no JAX import)
 
 BASE = "configs/room_chair.py:quick"
-NUM_STEPS = 1000
+NUM_STEPS = 600  # per run: 12 runs in about 75 min (experiments/README.md)
 EVAL_SCENES = 20
 VARIANTS = {
     "full": {},

@@ -20,8 +20,9 @@ collapse flag; the figure plots novel-view PSNR and FG-ARI against training time
 time per view, with the Pareto front (lower time, higher metric) as a step line and larger markers.
 Note that PSNR and ARI at 32² are measured at 32², so they are not the same task as at 64².
 
-Time: ≈ 65 min on the 2-core CPU for the defaults (1000 steps, 20 scenes), an estimate from the
-cost model in study_common.py (0.3 s per quick step, 2.6 s per 64² scene), not a measurement; the
+Time: 45 min measured on the 2-core CPU for the defaults (600 steps, 20 scenes; 19:17–20:11 on
+2026-11-22, experiments/README.md); --dry_run prints an estimate from the cost model in
+study_common.py (0.3 s per quick step, 2.6 s per 64² scene). The
 32² set is generated once (about a minute) before its first run. Runs live in --root (default
 runs/study/, shared with ablations.py and stability.py); a finished run is skipped, so running the
 script again resumes where it stopped.

@@ -15,8 +15,9 @@ With the defaults, the run directories are exactly those of ablations.py's `full
 directory name is a hash of the config, its overrides, seed and budget: study_common.run_id), so
 after ablations.py only seeds 3 and 4 are new.
 
-Time: ≈ 38 min on the 2-core CPU for the defaults run alone (5 × 1000 steps, 20 scenes; ≈ 15 min
-after ablations.py), an estimate from the cost model in study_common.py, not a measurement.
+Time: 11 min measured for seeds 3 and 4 after ablations.py (5 × 600 steps, 20 scenes; alone
+about 27 min, estimated from those runs), on the 2-core CPU on 2026-11-22; --dry_run prints an
+estimate.
 A finished run is skipped, so running the script again resumes where it stopped.
 """
 
