@@ -44,7 +44,7 @@ sys.path.insert(0, REPO)
 from experiments import study_common as sc  # noqa: E402  (no JAX import)
 
 BASE = "configs/room_chair.py:quick"
-NUM_STEPS = 600  # per run: 12 runs in about 75 min (experiments/README.md)
+NUM_STEPS = 600  # per run: the 12 runs took 63 min on the 2-core CPU (experiments/README.md)
 EVAL_SCENES = 20
 VARIANTS = {
     "full": {},

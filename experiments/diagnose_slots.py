@@ -61,11 +61,11 @@ def main(argv=None) -> None:
   p.add_argument("--checkpoint", default="best", help="best | latest | a step")
   args = p.parse_args(argv)
 
-  import jax.numpy as jnp
   import ml_collections
   from slotlifter_jax import checkpoints as ckpt_lib
   from slotlifter_jax import evaluate
   from slotlifter_jax import metrics
+  from slotlifter_jax import render_views
 
   saved = ckpt_lib.load_saved_config(args.workdir)
   if saved is None:
@@ -73,14 +73,12 @@ def main(argv=None) -> None:
                      f"training run directory")
   run = evaluate.load_run(ml_collections.ConfigDict(saved), args.workdir, split=args.split,
                           checkpoint=args.checkpoint, max_scenes=args.scenes)
+  encode = render_views.make_encode(run.model)
+  signed = run.config.model.colour_range == "signed"
   fg_ari, ari, used, slot_cos, key_cos = [], [], [], [], []
   for scene in run.scenes:
     idx = np.asarray(scene.source_indices)
-    encoded = run.model.apply(
-        {"params": run.params}, source_images=jnp.asarray(scene.images[idx][None]),
-        source_cam_to_world=jnp.asarray(scene.cam_to_world[idx][None]),
-        source_intrinsics=jnp.asarray(scene.intrinsics[idx][None]), train=False,
-        method=run.model.encode)
+    encoded = encode(run.params, render_views.scene_sources(scene, signed=signed))
     _, v, h, w, _ = encoded.features.shape
     attn = np.asarray(encoded.slot_attn[0]).reshape(-1, v, h * w)[:, 0]  # first source view
     labels = attention_segmentation(attn, feature_hw=(h, w), image_hw=scene.image_size)

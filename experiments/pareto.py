@@ -104,14 +104,6 @@ def plot(rows: list[dict], out: str) -> None:
   plt.close(fig)
 
 
-def _cell(value, digits: int) -> str:
-  try:
-    value = float(value)
-  except (TypeError, ValueError):  # an empty CSV cell
-    return "–"
-  return "–" if math.isnan(value) else f"{value:.{digits}f}"
-
-
 def table(rows: list[dict]) -> str:
   """pareto.md: one row per point; '*' marks the points on the PSNR / FG-ARI fronts over
   training time (the figure's left column), `R` those over render time (its right column)."""
@@ -133,19 +125,17 @@ def table(rows: list[dict]) -> str:
           "FG-ARI", "NV-ARI", "active slots", "collapsed"]
   lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
   for k, r in enumerate(rows):
+    cell = lambda key, digits: sc.format_value(r.get(key, math.nan), digits=digits)
     mark = lambda m: "".join(sorted(marks.get((k, m), ())))
     overrides = r.get("overrides", {})
-    if isinstance(overrides, str):
+    if isinstance(overrides, str):  # as the CSV holds it
       overrides = json.loads(overrides or "{}")
     lines.append("| " + " | ".join([
         str(r["name"]), ", ".join(f"{a}={b}" for a, b in overrides.items()) or "–",
-        _cell(r.get("train_s", math.nan), 0), _cell(r.get("step_s", math.nan), 3),
-        _cell(r.get("render_per_view_s", math.nan), 2),
-        _cell(r.get("psnr_novel", math.nan), 2) + mark("psnr_novel"),
-        _cell(r.get("ssim", math.nan), 3),
-        _cell(r.get("fg_ari", math.nan), 3) + mark("fg_ari"),
-        _cell(r.get("nv_ari", math.nan), 3), _cell(r.get("active_slots", math.nan), 2),
-        _cell(r.get("collapsed", math.nan), 0)]) + " |")
+        cell("train_s", 0), cell("step_s", 3), cell("render_per_view_s", 2),
+        cell("psnr_novel", 2) + mark("psnr_novel"), cell("ssim", 3),
+        cell("fg_ari", 3) + mark("fg_ari"), cell("nv_ari", 3), cell("active_slots", 2),
+        cell("collapsed", 0)]) + " |")
   return head + "\n".join(lines) + "\n"
 
 

@@ -61,10 +61,8 @@ def table(rows: list[dict], *, config: str = ablations.BASE) -> str:
   out.append("|" + "---|" * len(head))
   for r in sorted(rows, key=lambda r: int(r["seed"])):
     cells = [str(r["seed"])]
-    for m, _, scale, digits in COLUMNS:
-      v = r.get(m, math.nan)
-      cells.append("–" if v in ("", None) or math.isnan(float(v)) else
-                   f"{float(v) * scale:.{digits}f}")
+    cells += [sc.format_value(r.get(m, math.nan), digits=digits, scale=scale)
+              for m, _, scale, digits in COLUMNS]
     flag = r.get("collapsed", math.nan)
     cells.append("–" if flag in ("", None) or math.isnan(float(flag)) else
                  ("yes" if float(flag) == 1.0 else "no"))

@@ -545,6 +545,15 @@ def aggregate(rows: Sequence[dict], *, metrics: Sequence[str], group_by: str = "
   return out
 
 
+def format_value(value, *, digits: int, scale: float = 1.0) -> str:
+  """One CSV value (× scale) for a table cell; '–' for NaN or an empty cell."""
+  try:
+    value = float(value)
+  except (TypeError, ValueError):
+    return "–"
+  return "–" if math.isnan(value) else f"{value * scale:.{digits}f}"
+
+
 def format_stat(s: Stat, *, scale: float = 1.0, digits: int = 1, extremes: bool = False) -> str:
   """'mean ± std' (× scale), with ' [min, max]' when `extremes`; '–' for no value."""
   if s.n == 0:
