@@ -36,9 +36,10 @@ def plot(run_dir: str, out: str) -> None:
   axes[0].set_xlabel("step")
   axes[0].set_ylabel("dB")
   axes[0].legend(fontsize=8)
-  for key in ("ari", "fg_ari", "nv_ari", "nv_fg_ari"):
+  for key in ("ari", "fg_ari", "nv_ari", "nv_fg_ari", "attn_fg_ari"):
     if val and key in val[0]:
-      axes[1].plot([r["step"] for r in val], [r.get(key, float("nan")) for r in val], "o-", label=key)
+      axes[1].plot([r["step"] for r in val], [r.get(key, float("nan")) for r in val], "o-",
+                   label="slot attention 2D FG-ARI" if key == "attn_fg_ari" else key)
   axes[1].set_xlabel("step")
   axes[1].set_title("validation segmentation")
   axes[1].legend(fontsize=8)

@@ -429,7 +429,8 @@ class AdaptiveSceneRenderer:
       diags.append(diag)
     rendered = render_views.RenderedViews(
         colour=np.stack(colours), depth=np.stack(depths), segmentation=np.stack(segs),
-        slots=np.asarray(encoded.slots[0]), slot_attn=np.asarray(encoded.slot_attn[0]))
+        slots=np.asarray(encoded.slots[0]), slot_attn=np.asarray(encoded.slot_attn[0]),
+        source_labels=render_views.source_attention_labels(encoded, (height, width)))
     return rendered, diags
 
   def render(self, params, scene: Scene, view_indices, *, source_indices=None,

@@ -61,6 +61,9 @@ METRIC_DEFINITIONS = {
            "predicted slot masks, averaged over objects",
     "miou": "Hungarian-matched mean IoU, source view(s): one-to-one object-slot matching "
             "maximising total IoU, unmatched objects count 0, divided by the object count",
+    "attn_fg_ari": "FG-ARI of the slot attention alone on the source view(s): each encoder "
+                   "feature cell's argmax slot spread over its pixels (the grouping before any 3D "
+                   "point-slot mapping)",
     "psnr_novel": "PSNR (dB, data range 1) of the novel views, mean of per-image PSNRs",
     "ssim": "SSIM of the novel views: Gaussian window 11, sigma 1.5, K1 0.01, K2 0.03, valid "
             "region only, after piq's average pooling by round(min(H, W)/256)",
@@ -156,6 +159,13 @@ def scene_metrics(rendered: render_views.RenderedViews, scene: Scene, view_indic
       last = nv_ari_last_view and k in ("ari", "fg_ari")
       out[f"nv_{k}"] = float(metrics.per_scene_novel_mean(values=[v[novel]],
                                                           last_novel_only=last)[0])
+  src = np.asarray(scene.source_indices, np.int64)
+  src_has_mask = (np.ones(src.size, bool) if scene.mask_views is None
+                  else np.asarray(scene.mask_views, bool)[src])
+  if src_has_mask.any():
+    attn_fg = metrics.fg_ari(true_labels=scene.masks[src].reshape(src.size, -1),
+                             pred_labels=np.asarray(rendered.source_labels).reshape(src.size, -1))
+    out["attn_fg_ari"] = _nan_mean(np.where(src_has_mask, attn_fg, np.nan))
   masked = np.flatnonzero(has_mask)
   if masked.size:
     # The whole scene as one long view, so the 1 % threshold is of the scene's foreground.

@@ -58,6 +58,31 @@ def segmentation_from_render(segmentation: np.ndarray) -> np.ndarray:
   return np.argmax(np.asarray(segmentation), axis=-1).astype(np.int32)
 
 
+def feature_cells(*, feature_hw: tuple[int, int], image_hw: tuple[int, int]) -> np.ndarray:
+  """Each pixel's nearest feature cell [H, W] (row-major index into h·w) under the align-corners
+  mapping the lifting samples with (SPEC §1.3: pixel u ↦ u·(w−1)/(W−1)); any image size works,
+  not only multiples of the encoder's stride."""
+  h, w = feature_hw
+  height, width = image_hw
+
+  def nearest(n_pixels, n_cells):
+    scale = (n_cells - 1) / (n_pixels - 1) if n_pixels > 1 else 0.0
+    return np.rint(np.arange(n_pixels) * scale).astype(np.int64)
+
+  return nearest(height, h)[:, None] * w + nearest(width, w)[None, :]
+
+
+def attention_labels(attn: np.ndarray, *, feature_hw: tuple[int, int],
+                     image_hw: tuple[int, int]) -> np.ndarray:
+  """Slot attention over one view's feature map → that view's labels [H, W] int32.
+
+  attn [K, h·w] (softmax over the K slots, row-major cells); each pixel takes the argmax slot of
+  its `feature_cells` cell. This is the grouping of the first stage alone, before any 3D mapping.
+  """
+  cells = np.asarray(attn).argmax(0).astype(np.int32)  # [h·w]
+  return cells[feature_cells(feature_hw=feature_hw, image_hw=image_hw)]
+
+
 def _flatten_views(
     true_labels: np.ndarray, pred_labels: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, tuple[int, ...]]:

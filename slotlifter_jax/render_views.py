@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from slotlifter_jax import geometry
+from slotlifter_jax import metrics
 from slotlifter_jax.data.types import Scene
 
 
@@ -23,6 +24,17 @@ class RenderedViews:
   segmentation: np.ndarray  # [n, H, W, K] soft, sums to 1 over K
   slots: np.ndarray  # [K, slot_dim]
   slot_attn: np.ndarray  # [K, V·h·w]
+  # [V, H, W] each source pixel's slot under the slot attention alone (metrics.attention_labels)
+  source_labels: np.ndarray
+
+
+def source_attention_labels(encoded, image_hw: tuple[int, int]) -> np.ndarray:
+  """The first scene of `encoded` (model.Encoded): its slot attention's argmax slot per source
+  pixel [V, H, W], from the last iteration's attention over the V·h·w feature cells."""
+  _, v, h, w, _ = encoded.features.shape
+  attn = np.asarray(encoded.slot_attn[0]).reshape(-1, v, h * w)  # [K, V, h·w]
+  return np.stack([metrics.attention_labels(attn[:, i], feature_hw=(h, w), image_hw=image_hw)
+                   for i in range(v)])
 
 
 def scene_sources(scene: Scene, *, signed: bool, source_indices=None) -> dict:
@@ -106,8 +118,10 @@ class SceneRenderer:
     n = len(views)
     colours, depths = colour.reshape(n, height, width, -1), depth.reshape(n, height, width)
     segs = seg.reshape(n, height, width, -1)
-    return RenderedViews(colour=colours, depth=depths, segmentation=segs, slots=np.asarray(encoded.slots[0]),
-                         slot_attn=np.asarray(encoded.slot_attn[0]))
+    return RenderedViews(colour=colours, depth=depths, segmentation=segs,
+                         slots=np.asarray(encoded.slots[0]),
+                         slot_attn=np.asarray(encoded.slot_attn[0]),
+                         source_labels=source_attention_labels(encoded, (height, width)))
 
 
 def make_scene_renderer(model, config):

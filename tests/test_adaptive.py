@@ -279,12 +279,25 @@ def test_whole_grid_window_equals_the_plain_renderer(smoke_model):
   chex.assert_shape(got.colour, (3, H, W, 3))
   for name in ("colour", "depth", "segmentation", "slots"):
     np.testing.assert_allclose(getattr(got, name), getattr(plain, name), atol=1e-5, err_msg=name)
+  np.testing.assert_array_equal(got.source_labels, plain.source_labels)
   for d in diags:
     assert d.overflow_fraction == 0.0 and not d.fallback.any()
     assert (d.window_start[~d.proposal] == 0).all()  # W = S: the only window
   # The plain renderer's result type and call, also through `render`.
   same = renderer.render(params, scene, [1])
   np.testing.assert_array_equal(same.colour[0], got.colour[1])
+
+
+def test_source_labels_are_the_slot_attention_of_the_source_view(smoke_model):
+  _, _, _, scene, plain = smoke_model
+  chex.assert_shape(plain.source_labels, (1, H, W))
+  h, w = (H + 3) // 4, (W + 3) // 4  # the encoder's stride 4, odd sizes rounded up
+  assert plain.slot_attn.shape[1] == h * w
+  cells = plain.slot_attn.reshape(-1, h, w).argmax(0)  # [h, w]
+  # The corners map to the corner cells (align-corners), and every label is a cell's argmax.
+  assert plain.source_labels[0, 0, 0] == cells[0, 0]
+  assert plain.source_labels[0, -1, -1] == cells[-1, -1]
+  assert set(np.unique(plain.source_labels)) <= set(np.unique(cells))
 
 
 def test_fallback_renders_overflowing_pixels_on_the_whole_grid(smoke_model):

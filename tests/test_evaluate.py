@@ -56,7 +56,8 @@ def _toy_render(rng, n):
   return render_views.RenderedViews(
       colour=rng.uniform(size=(n, H, W, 3)).astype(np.float32),
       depth=np.zeros((n, H, W), np.float32), segmentation=seg / seg.sum(-1, keepdims=True),
-      slots=np.zeros((K, 2), np.float32), slot_attn=np.zeros((K, 4), np.float32))
+      slots=np.zeros((K, 2), np.float32), slot_attn=np.zeros((K, 4), np.float32),
+      source_labels=rng.integers(0, K, size=(1, H, W)).astype(np.int32))
 
 
 def _psnr(a, b):
@@ -106,6 +107,10 @@ def test_scene_metrics_splits_views_and_skips_as_the_protocol_says():
       np.mean([_psnr(rendered.colour[v], scene.images[v]) for v in (1, 2, 3, 4)]))
   assert out["ari"] == pytest.approx(adjusted_rand_score(true[0], pred[0]))
   assert out["fg_ari"] == pytest.approx(_fg_ari(true[0], pred[0]))
+  # The slot attention's own grouping of the source view, not the rendered one.
+  assert out["attn_fg_ari"] == pytest.approx(
+      _fg_ari(true[0], rendered.source_labels[0].ravel()))
+  assert out["attn_fg_ari"] != pytest.approx(out["fg_ari"])
   # View 2 has no mask: left out of every segmentation metric; view 4 has no foreground: left
   # out of FG-ARI only.
   assert out["nv_ari"] == pytest.approx(

@@ -134,6 +134,18 @@ def test_segmentation_from_render_is_argmax_over_slots():
   np.testing.assert_array_equal(got, labels)
 
 
+@pytest.mark.parametrize("image_hw", [(16, 24), (15, 22), (4, 6)])
+def test_attention_labels_give_each_pixel_its_nearest_cells_argmax(image_hw):
+  rng = np.random.default_rng(3)
+  attn = rng.random((5, 4 * 6))  # K = 5 slots over a 4×6 feature map, row-major cells
+  labels = metrics.attention_labels(attn, feature_hw=(4, 6), image_hw=image_hw)
+  height, width = image_hw
+  chex.assert_shape(labels, (height, width))
+  for y, x in itertools.product(range(height), range(width)):  # align-corners, by hand
+    cy, cx = round(y * 3 / (height - 1)), round(x * 5 / (width - 1))
+    assert labels[y, x] == attn[:, cy * 6 + cx].argmax()
+
+
 # ------------------------------------------------------------------------------------ mBO / mIoU
 
 

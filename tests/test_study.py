@@ -13,6 +13,7 @@ import sys
 
 import numpy as np
 import pytest
+from sklearn.metrics import adjusted_rand_score
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
@@ -303,19 +304,35 @@ def test_upsert_csv_is_keyed_by_run_id(tmp_path):
   assert rows[1]["extra"] == "e" and not os.path.exists(path + ".tmp")
 
 
-def test_attention_segmentation_and_slot_cosine_against_references():
+def test_mean_pairwise_cosine_against_reference():
   rng = np.random.default_rng(3)
-  attn = rng.random((5, 4 * 6))  # K = 5 slots over a 4×6 feature map
-  labels = diagnose_slots.attention_segmentation(attn, feature_hw=(4, 6), image_hw=(16, 24))
-  for y, x in itertools.product(range(16), range(24)):  # pixel → its feature cell, by hand
-    assert labels[y, x] == attn[:, (y // 4) * 6 + x // 4].argmax()
-  with pytest.raises(ValueError, match="not a multiple"):
-    diagnose_slots.attention_segmentation(attn, feature_hw=(4, 6), image_hw=(15, 24))
   x = rng.normal(size=(6, 7))
   pairs = [np.dot(x[i], x[j]) / np.linalg.norm(x[i]) / np.linalg.norm(x[j])
            for i, j in itertools.combinations(range(6), 2)]
   assert diagnose_slots.mean_pairwise_cosine(x) == pytest.approx(np.mean(pairs), abs=1e-12)
   assert diagnose_slots.mean_pairwise_cosine(np.ones((3, 4))) == pytest.approx(1.0)
+
+
+def test_cell_ceiling_takes_each_cells_majority_label():
+  mask = np.zeros((8, 8), np.int32)  # a 2×2 feature map of 4×4-pixel cells (align-corners)
+  mask[0:4, 0:4] = 3  # a whole cell: kept
+  mask[4:6, 4:8] = 5  # half a cell: a tie with the floor, the lower label wins
+  mask[0:3, 4:8] = 7  # 12 of a cell's 16 pixels: the whole cell becomes 7
+  got = diagnose_slots.cell_ceiling_labels(mask, feature_hw=(2, 2))
+  want = np.zeros((8, 8), np.int32)
+  want[0:4, 0:4], want[0:4, 4:8] = 3, 7
+  np.testing.assert_array_equal(got, want)
+  # A mask that is constant on cells is its own ceiling.
+  np.testing.assert_array_equal(diagnose_slots.cell_ceiling_labels(want, feature_hw=(2, 2)), want)
+
+
+def test_colour_kmeans_separates_distinct_colours():
+  rng = np.random.default_rng(0)
+  mask = rng.integers(0, 4, size=(12, 10))
+  palette = np.array([[0.5, 0.5, 0.5], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, 1.0, 0.0]])
+  image = palette[mask] + rng.normal(scale=0.01, size=(12, 10, 3))
+  labels = diagnose_slots.colour_kmeans_labels(image, num_clusters=4)
+  assert adjusted_rand_score(mask.ravel(), labels.ravel()) == pytest.approx(1.0)
 
 
 def test_diagnose_slots_runs_on_a_trained_run(smoke_run, capsys):
@@ -324,3 +341,4 @@ def test_diagnose_slots_runs_on_a_trained_run(smoke_run, capsys):
                        "--checkpoint=latest"])
   out = capsys.readouterr().out
   assert "step 6, 1 test scenes, K = 4" in out and "2D FG-ARI" in out and "key cosine" in out
+  assert "cell ceiling (8×8 cells)" in out and "colour k-means (4 clusters)" in out
