@@ -8,8 +8,9 @@ source view's features into K slots, and the allocation transformer mapping 3D p
 slots. This script looks at the first stage alone, with the run's own config (DIR/config.json),
 for the first --scenes scenes of --split:
   2D FG-ARI / ARI   the argmax over slots of the last slot-attention iteration's attention
-                    (softmax over slots, [K, h·w]), upsampled to the image (nearest), against the
-                    source view's ground-truth mask (the 2D FG-ARI is what evaluation and
+                    (softmax over slots, [K, h·w]), each pixel taking its nearest feature
+                    cell's (align-corners, metrics.feature_cells), against the source view's
+                    ground-truth mask (the 2D FG-ARI is what evaluation and
                     validation report as attn_fg_ari)
   slots used        slots that own at least 1 % of the source view's pixels as that argmax
   slot cosine       mean pairwise cosine similarity of the K slots (1: identical slots, which no

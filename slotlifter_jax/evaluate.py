@@ -61,9 +61,9 @@ METRIC_DEFINITIONS = {
            "predicted slot masks, averaged over objects",
     "miou": "Hungarian-matched mean IoU, source view(s): one-to-one object-slot matching "
             "maximising total IoU, unmatched objects count 0, divided by the object count",
-    "attn_fg_ari": "FG-ARI of the slot attention alone on the source view(s): each encoder "
-                   "feature cell's argmax slot spread over its pixels (the grouping before any 3D "
-                   "point-slot mapping)",
+    "attn_fg_ari": "FG-ARI of the slot attention alone on the source view(s): each pixel takes "
+                   "the argmax slot of its nearest encoder feature cell (align-corners), the "
+                   "grouping before any 3D point-slot mapping",
     "psnr_novel": "PSNR (dB, data range 1) of the novel views, mean of per-image PSNRs",
     "ssim": "SSIM of the novel views: Gaussian window 11, sigma 1.5, K1 0.01, K2 0.03, valid "
             "region only, after piq's average pooling by round(min(H, W)/256)",
