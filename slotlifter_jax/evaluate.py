@@ -103,6 +103,13 @@ def _nan_mean(values: np.ndarray) -> float:
   return metrics.summarize(values).mean
 
 
+def _views_with_mask(scene: Scene, views: np.ndarray) -> np.ndarray:
+  """[n] bool: which of `views` have a ground-truth mask (all when the scene has no mask_views)."""
+  if scene.mask_views is None:
+    return np.ones(views.size, bool)
+  return np.asarray(scene.mask_views, bool)[views]
+
+
 def scene_metrics(rendered: render_views.RenderedViews, scene: Scene, view_indices: Sequence[int],
                   *, image_metrics: bool = False, lpips_net: str = "alex",
                   lpips_quirk: bool = False, nv_ari_last_view: bool = False) -> dict[str, float]:
@@ -140,8 +147,7 @@ def scene_metrics(rendered: render_views.RenderedViews, scene: Scene, view_indic
     return out
 
   n = views.size
-  has_mask = (np.ones(n, bool) if scene.mask_views is None
-              else np.asarray(scene.mask_views, bool)[views])  # [n]
+  has_mask = _views_with_mask(scene, views)  # [n]
   true = scene.masks[views].reshape(n, -1)  # [n, H·W]
   pred = metrics.segmentation_from_render(rendered.segmentation).reshape(n, -1)  # [n, H·W]
   overlap = metrics.object_overlap(true_labels=true, pred_labels=pred)
@@ -160,8 +166,10 @@ def scene_metrics(rendered: render_views.RenderedViews, scene: Scene, view_indic
       out[f"nv_{k}"] = float(metrics.per_scene_novel_mean(values=[v[novel]],
                                                           last_novel_only=last)[0])
   src = np.asarray(scene.source_indices, np.int64)
-  src_has_mask = (np.ones(src.size, bool) if scene.mask_views is None
-                  else np.asarray(scene.mask_views, bool)[src])
+  src_has_mask = _views_with_mask(scene, src)
+  if np.shape(rendered.source_labels)[0] != src.size:
+    raise ValueError(f"scene {scene.name}: {np.shape(rendered.source_labels)[0]} source views "
+                     f"rendered, but the scene names {src.size} (source_indices {tuple(src)})")
   if src_has_mask.any():
     attn_fg = metrics.fg_ari(true_labels=scene.masks[src].reshape(src.size, -1),
                              pred_labels=np.asarray(rendered.source_labels).reshape(src.size, -1))

@@ -146,6 +146,15 @@ def test_scene_metrics_quirk_and_missing_masks():
   assert set(no_masks) == {"psnr_source", "psnr_novel"}
 
 
+def test_scene_metrics_rejects_source_labels_of_other_sources():
+  rng = np.random.default_rng(2)
+  scene = _toy_scene(rng)
+  rendered = _toy_render(rng, scene.num_views)
+  two = rendered.replace(source_labels=np.zeros((2, H, W), np.int32))
+  with pytest.raises(ValueError, match="toy: 2 source views rendered, but the scene names 1"):
+    evaluate.scene_metrics(two, scene, range(scene.num_views))
+
+
 def test_mean_over_scenes_skips_nan():
   got = evaluate.mean_over_scenes([{"a": 1.0, "b": math.nan}, {"a": 3.0}, {"a": 5.0, "b": 2.0}])
   assert got["a"] == 3.0 and got["b"] == 2.0
