@@ -14,13 +14,17 @@ to μ.
 
 Initialisers follow the official code: xavier-uniform projections, a kaiming-uniform first MLP
 layer, and μ drawn with the bound PyTorch's xavier_uniform_ gives the official [1, K, Ds] tensor
-(fans K·Ds and Ds), which is ~3× smaller than flax's xavier on a [K, Ds] matrix.
+(fans K·Ds and Ds), which is ~3× smaller than flax's xavier on a [K, Ds] matrix. The GRU's
+recurrent kernels are likewise cut from ONE orthogonal matrix over all three gates, as
+torch.nn.init.orthogonal_ on the official stacked weight_hh [3·Ds, Ds] (entry std √(1/(3·Ds))),
+not one orthogonal matrix per gate as flax's GRUCell draws them (std 1/√Ds, √3 wider); see
+`SlotGRU`.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Optional
+from typing import Any, Optional
 
 import flax.linen as nn
 import flax.struct
@@ -83,6 +87,57 @@ def _mu_init(key, shape, dtype=jnp.float32):
   return jax.random.uniform(key, shape, dtype, -bound, bound)
 
 
+def _gate_slice_init(stacked_key: Optional[jax.Array], gate: int, num_gates: int = 3):
+  """Initialiser for gate `gate`'s recurrent kernel: its slice of one stacked orthogonal draw.
+
+  Flax hands every Dense its own rng key, so per-gate orthogonal draws would be independent and
+  their concatenation not orthogonal. All gates therefore ignore their own key and draw the same
+  [Ds_in, num_gates·Ds] orthogonal matrix from the shared `stacked_key` (same key → same matrix),
+  then keep columns gate·Ds … (gate+1)·Ds. That matrix is the transpose of torch's stacked
+  weight_hh [num_gates·Ds, Ds_in]: torch's orthonormal columns become orthonormal rows here.
+  """
+  def init(key, shape, dtype=jnp.float32):
+    # Outside init (stacked_key None) flax only evaluates the initialiser abstractly, to check a
+    # stored parameter's shape; the Dense's own key serves for that.
+    fan_in, width = shape
+    draw_key = key if stacked_key is None else stacked_key
+    stacked = nn.initializers.orthogonal()(draw_key, (fan_in, num_gates * width), dtype)
+    return stacked[:, gate * width:(gate + 1) * width]
+  return init
+
+
+class SlotGRU(nn.Module):
+  """flax's GRUCell with torch's stacked orthogonal initialisation of the recurrent kernels.
+
+  Same parameters (ir, iz, in with bias; hr, hz without; hn with bias — flax folds torch's b_hr,
+  b_hz into b_ir, b_iz) and the same equations as `flax.linen.GRUCell`, which are torch's GRUCell
+  equations:
+    r = σ(W_ir x + b_ir + W_hr h)
+    z = σ(W_iz x + b_iz + W_hz h)
+    n = tanh(W_in x + b_in + r ⊙ (W_hn h + b_hn))
+    h' = (1 − z) ⊙ n + z ⊙ h
+  Only the initial values of W_hr, W_hz, W_hn differ: see `_gate_slice_init`.
+  """
+  features: int
+  kernel_init: Any = nn.initializers.lecun_normal()  # input kernels, one per gate
+
+  @nn.compact
+  def __call__(self, carry: jax.Array, inputs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """carry h [..., Ds] and inputs x [..., Din] → (h', h'), as GRUCell."""
+    h = carry
+    # Draws a key only while the parameters are being created; `apply` needs no 'params' rng.
+    stacked_key = self.make_rng("params") if self.is_initializing() else None
+    dense_i = lambda name: nn.Dense(self.features, kernel_init=self.kernel_init, name=name)
+    dense_h = lambda name, gate, use_bias=False: nn.Dense(
+        self.features, use_bias=use_bias, kernel_init=_gate_slice_init(stacked_key, gate),
+        name=name)
+    r = nn.sigmoid(dense_i("ir")(inputs) + dense_h("hr", 0)(h))
+    z = nn.sigmoid(dense_i("iz")(inputs) + dense_h("hz", 1)(h))
+    n = jnp.tanh(dense_i("in")(inputs) + r * dense_h("hn", 2, use_bias=True)(h))
+    new_h = (1.0 - z) * n + z * h
+    return new_h, new_h
+
+
 class SlotAttention(nn.Module):
   """BO-QSA slot attention: [B, N, D] features → K slots of width `slot_dim`."""
   num_slots: int = 8
@@ -103,8 +158,9 @@ class SlotAttention(nn.Module):
     self.project_v = nn.Dense(d, use_bias=False, kernel_init=nn.initializers.xavier_uniform())
     # PyTorch's xavier on the stacked [3·Ds, Ds] input kernel has variance 2/(Ds + 3·Ds); flax keeps
     # one [Ds, Ds] kernel per gate, so the same variance needs scale (Ds + Ds)/(Ds + 3·Ds) = 1/2.
-    # Flax's GRUCell has 512 fewer bias parameters than PyTorch's (it merges b_ir+b_hr, b_iz+b_hz).
-    self.gru = nn.GRUCell(
+    # The GRU has 512 fewer bias parameters than PyTorch's (it merges b_ir+b_hr, b_iz+b_hz). Its
+    # recurrent kernels are slices of one orthogonal [Ds, 3·Ds] matrix, as torch's weight_hh.
+    self.gru = SlotGRU(
         features=d, kernel_init=nn.initializers.variance_scaling(0.5, "fan_avg", "uniform"))
     # he_uniform = torch's kaiming_uniform_(nonlinearity='relu'), as the official first MLP layer.
     self.mlp_in = nn.Dense(self.mlp_dim, kernel_init=nn.initializers.he_uniform())

@@ -1,6 +1,7 @@
 """Tests for BO-QSA slot attention (SPEC §1.2)."""
 
 import chex
+import flax.linen as nn
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -138,3 +139,66 @@ def test_drop_path_is_per_sample_and_unbiased():
   np.testing.assert_array_equal(per_sample.min(1), per_sample.max(1))
   assert abs(per_sample.mean() - 1.0) < 0.05
   assert 0.17 < np.mean(per_sample[:, 0] == 0) < 0.23
+
+
+def test_gru_recurrent_kernels_are_one_stacked_orthogonal_matrix():
+  # torch.nn.init.orthogonal_ on the official weight_hh [3·Ds, Ds] (gates r, z, n) gives orthonormal
+  # columns; its transpose, our three [Ds, Ds] kernels side by side, has orthonormal rows.
+  ds = 256
+  module = sa.SlotAttention(num_slots=8, slot_dim=ds)
+  gru = jax.jit(module.init)(_key(0), jnp.zeros((1, 3, 7)))["params"]["gru"]
+  kernels = [np.asarray(gru[name]["kernel"], np.float64) for name in ("hr", "hz", "hn")]
+  stacked = np.concatenate(kernels, axis=1)  # [Ds, 3·Ds]
+  np.testing.assert_allclose(stacked @ stacked.T, np.eye(ds), atol=1e-5)
+  # Rows of unit norm over 3·Ds entries: entry std √(1/(3·Ds)) = 0.0361, not a per-gate
+  # orthogonal matrix's 1/√Ds = 0.0625. 65,536 entries per gate put the sample std within ~0.3 %
+  # of that (≈ 1/√(2·65536)); rtol 0.03 leaves room and is still far from the √3 wider value.
+  for kernel in kernels:
+    np.testing.assert_allclose(kernel.std(), np.sqrt(1.0 / (3 * ds)), rtol=0.03)
+    assert kernel.std() < 0.7 / np.sqrt(ds)
+  # Each gate's slice is different (the gates do not share one matrix).
+  assert np.abs(kernels[0] - kernels[1]).max() > 1e-2
+  assert np.abs(kernels[1] - kernels[2]).max() > 1e-2
+
+
+def _torch_gru_numpy(x, h, weight_ih, weight_hh, bias_ih, bias_hh):
+  """torch.nn.GRUCell's equations (PyTorch docs) on torch-layout stacked weights, gates r, z, n."""
+  sigmoid = lambda a: 1.0 / (1.0 + np.exp(-a))
+  gi = x @ weight_ih.T + bias_ih
+  gh = h @ weight_hh.T + bias_hh
+  i_r, i_z, i_n = np.split(gi, 3, axis=-1)
+  h_r, h_z, h_n = np.split(gh, 3, axis=-1)
+  r = sigmoid(i_r + h_r)
+  z = sigmoid(i_z + h_z)
+  n = np.tanh(i_n + r * h_n)
+  return (1.0 - z) * n + z * h
+
+
+def test_gru_matches_torch_equations_and_flax_gru_cell():
+  din = 11
+  rng = np.random.default_rng(0)
+  x = rng.normal(size=(B, K, din)).astype(np.float32)
+  h = rng.normal(size=(B, K, DS)).astype(np.float32)
+  gru = sa.SlotGRU(features=DS)
+  params = jax.jit(gru.init)(_key(0), jnp.asarray(h), jnp.asarray(x))
+  # Random biases: the initial ones are zero and would not test their placement.
+  params = jax.tree.map(
+      lambda p: p + 0.3 * rng.normal(size=p.shape).astype(np.float32) if p.ndim == 1 else p,
+      params)
+  p = jax.tree.map(lambda a: np.asarray(a, np.float64), params["params"])
+  # torch layout: weight [3·Ds, Din] = the transposed flax kernels stacked by gate; flax has no
+  # b_hr, b_hz (folded into b_ir, b_iz), i.e. they are zero in torch terms.
+  weight_ih = np.concatenate([p[g]["kernel"].T for g in ("ir", "iz", "in")])
+  weight_hh = np.concatenate([p[g]["kernel"].T for g in ("hr", "hz", "hn")])
+  bias_ih = np.concatenate([p[g]["bias"] for g in ("ir", "iz", "in")])
+  bias_hh = np.concatenate([np.zeros(DS), np.zeros(DS), p["hn"]["bias"]])
+  want = _torch_gru_numpy(x.astype(np.float64), h.astype(np.float64), weight_ih, weight_hh,
+                          bias_ih, bias_hh)
+  got, out = gru.apply(params, jnp.asarray(h), jnp.asarray(x))
+  np.testing.assert_allclose(got, want, atol=1e-5)
+  np.testing.assert_array_equal(got, out)
+  # Same parameter tree and function as flax's GRUCell: only the initial values differ.
+  cell_new, _ = nn.GRUCell(features=DS).apply(params, jnp.asarray(h), jnp.asarray(x))
+  np.testing.assert_allclose(got, cell_new, atol=1e-6)
+  cell_params = nn.GRUCell(features=DS).init(_key(0), jnp.asarray(h), jnp.asarray(x))
+  chex.assert_trees_all_equal_shapes(cell_params, params)
