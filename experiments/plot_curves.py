@@ -2,10 +2,13 @@
 
 Reads RUN_DIR/metrics.jsonl (written by training), or a copied metrics file and draws train loss/PSNR with the schedules
 (keep ratio, slot noise, locality) and the validation PSNR / ARI / FG-ARI / NV-ARI over steps.
-Default output: RUN_DIR/curves.png.
+A second row shows the emergence of objects: slot attention FG-ARI, FG-ARI and NV-ARI against steps
+and against minutes of wall time, with the time to decomposition (FG-ARI ≥ 0.5 and ≥ 0.8) marked
+and printed (slotlifter_jax/emergence.py defines both; logs without `wall_s` count wall time from
+their first record's timestamp). Default output: RUN_DIR/curves.png.
 """
 
-import json
+import math
 import os
 import sys
 
@@ -14,22 +17,71 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from slotlifter_jax import emergence  # noqa: E402  (numpy and absl only, no JAX)
+
+EMERGENCE_KEYS = ("attn_fg_ari", "fg_ari", "nv_ari")
+
+
+def _records(run_dir: str) -> list[dict]:
+  path = run_dir if os.path.isfile(run_dir) else os.path.join(run_dir, emergence.METRICS_FILE)
+  return emergence.load_records(path)
+
+
+def _split(records: list[dict]) -> tuple[list[dict], list[dict]]:
+  latest = emergence.latest_records(records)
+  return [r for r in latest if r["kind"] == "train"], [r for r in latest if r["kind"] == "val"]
+
 
 def read_metrics(run_dir: str) -> tuple[list[dict], list[dict]]:
-  train, val = [], []
-  path = run_dir if os.path.isfile(run_dir) else os.path.join(run_dir, "metrics.jsonl")
-  with open(path) as f:
-    for line in f:
-      row = json.loads(line)
-      (train if row["kind"] == "train" else val).append(row)
-  return train, val
+  """(train, validation) records sorted by step, a resumed run's repeated steps resolved."""
+  return _split(_records(run_dir))
+
+
+def plot_emergence(records: list[dict], ax_step, ax_wall, ax_text) -> list[str]:
+  """The segmentation metrics against steps and wall minutes, with FG-ARI's threshold crossings.
+
+  `records`: the whole log in file order (the fallback clock starts at its first record). Returns
+  the time-to-decomposition lines it prints into `ax_text`.
+  """
+  curves = emergence.curves(records, keys=EMERGENCE_KEYS)
+  result = emergence.time_to_decomposition(records, key="fg_ari")
+  for ax, x in ((ax_step, "step"), (ax_wall, "minutes")):
+    for key in EMERGENCE_KEYS:
+      if curves[key].size and not all(math.isnan(v) for v in curves[key]):
+        ax.plot(curves[x], curves[key], "o-", ms=3, lw=1, label=emergence.label(key))
+    for t in result["thresholds"]:
+      ax.axhline(t, color="grey", ls="--", lw=0.8)
+      c = result["crossings"][f"{t:g}"]
+      if c is not None and math.isfinite(c[x]):
+        ax.axvline(c[x], color="k", ls=":", lw=0.8)
+        ax.annotate(f"FG-ARI ≥ {t:g}: {c['minutes']:.1f} min\n(step {c['step']})",
+                    (c[x], t), xytext=(4, -22), textcoords="offset points", fontsize=7,
+                    bbox=dict(boxstyle="round,pad=0.2", fc="white", ec="none", alpha=0.8))
+    ax.set_ylim(-0.05, 1.05)
+    ax.set_ylabel("ARI")
+    if ax.has_data() and ax.get_legend_handles_labels()[0]:
+      ax.legend(fontsize=7, loc="upper left")
+  ax_step.set_xlabel("step")
+  ax_step.set_title("emergence of objects (validation)")
+  clock = {"wall_s": "", "none": ""}.get(result["wall_clock"], " (from record timestamps)")
+  ax_wall.set_xlabel(f"wall time, minutes{clock}")
+  ax_wall.set_title("emergence against wall time")
+  lines = emergence.summary_lines(result)
+  ax_text.axis("off")
+  ax_text.text(0, 1, "\n".join(lines), va="top", fontsize=7.5, wrap=True,
+               transform=ax_text.transAxes)
+  return lines
 
 
 def plot(run_dir: str, out: str) -> None:
-  train, val = read_metrics(run_dir)
-  fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+  records = _records(run_dir)
+  train, val = _split(records)
+  fig, grid = plt.subplots(2, 3, figsize=(13, 7.2))
+  axes = grid[0]
   steps = [r["step"] for r in train]
-  axes[0].plot(steps, [r["psnr"] for r in train], lw=0.8, label="train PSNR (batch)")
+  axes[0].plot(steps, [r.get("psnr", float("nan")) for r in train], lw=0.8,
+               label="train PSNR (batch)")
   if val:
     axes[0].plot([r["step"] for r in val], [r.get("psnr_novel", float("nan")) for r in val], "o-",
                  label="val novel-view PSNR")
@@ -44,15 +96,18 @@ def plot(run_dir: str, out: str) -> None:
   axes[1].set_title("validation segmentation")
   axes[1].legend(fontsize=8)
   for key in ("keep_ratio", "slot_noise_sigma", "locality"):
-    axes[2].plot(steps, [r[key] for r in train], label=key)
+    axes[2].plot(steps, [r.get(key, float("nan")) for r in train], label=key)
   ax = axes[2].twinx()
-  ax.plot(steps, [r["lr_backbone"] for r in train], "k--", lw=0.8, label="lr backbone")
+  ax.plot(steps, [r.get("lr_backbone", float("nan")) for r in train], "k--", lw=0.8,
+          label="lr backbone")
   ax.set_ylabel("lr")
   axes[2].set_xlabel("step")
   axes[2].set_title("schedules")
   axes[2].legend(fontsize=8, loc="center right")
+  lines = plot_emergence(records, *grid[1])
   fig.tight_layout()
   fig.savefig(out, dpi=80)
+  print("\n".join(lines))
   print(f"wrote {out}")
 
 
