@@ -1,9 +1,11 @@
 """The embedded default data set: generated once into a cache folder when no data root is given.
 
 The cache key holds every argument of the generator, so a config that asks for another size or
-seed gets its own folder, and a finished folder is never regenerated or modified. Generation writes
-each split to a temporary folder and renames it into place, so an interrupted run leaves nothing
-that looks complete.
+seed gets its own folder, and a finished folder is never regenerated or modified. The object
+options (data.min_objects, data.max_objects, data.object_scale) add a suffix such as `-o1-3-x1.6`
+only when they differ from the family's default, so the default sets keep their folder names.
+Generation writes each split to a temporary folder and renames it into place, so an interrupted run
+leaves nothing that looks complete.
 """
 
 from __future__ import annotations
@@ -23,11 +25,25 @@ def cache_root() -> str:
   return os.path.join(base, "slotlifter_jax")
 
 
+def object_options(data_config) -> dict:
+  """min_objects, max_objects, object_scale of a data config; configs saved before these fields
+  existed get the defaults (0, 0, 1.0)."""
+  d = data_config
+  return {"min_objects": int(d.get("min_objects", 0)), "max_objects": int(d.get("max_objects", 0)),
+          "object_scale": float(d.get("object_scale", 1.0))}
+
+
 def dataset_dir(data_config, *, seed: int) -> str:
   from slotlifter_jax.data import generator  # heavy imports only when generating
   d = data_config
   name = (f"{d.family}-v{generator.GENERATOR_VERSION}-{d.image_size}px-{d.views_per_scene}v-"
           f"{d.num_train_scenes}-{d.num_val_scenes}-{d.num_test_scenes}-s{seed}")
+  objects = object_options(d)
+  generator.check_object_options(d.family, **objects)
+  if not generator.is_default_objects(d.family, **objects):
+    lo, hi = generator.object_count_range(d.family, objects["min_objects"],
+                                          objects["max_objects"])
+    name += f"-o{lo}-{hi}-x{objects['object_scale']!r}"
   return os.path.join(cache_root(), name)
 
 
@@ -44,5 +60,5 @@ def ensure_dataset(data_config, *, seed: int = 0) -> str:
   generator.generate_dataset(
       root, family=d.family, num_train=d.num_train_scenes, num_val=d.num_val_scenes,
       num_test=d.num_test_scenes, views=d.views_per_scene, image_size=d.image_size, seed=seed,
-      progress=True)
+      progress=True, **object_options(d))
   return root

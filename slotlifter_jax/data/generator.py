@@ -78,6 +78,21 @@ CLEVR_MATERIALS = ("rubber", "metal")
 CLEVR_NUM_OBJECTS = (5, 7)
 CLEVR_XY_RANGE = 3.0
 MIN_GAP = 0.25  # between bounding circles
+# Optional easier sets (`object_scale` > 1, e.g. 1–3 objects at 1.6×) keep every object's bounding
+# circle inside the footprint of the default scenes, |x|, |y| ≤ CLEVR_FOOTPRINT = 3.99: the range of
+# the largest default object (a large cube, bounding radius 0.7·√2) placed at CLEVR_XY_RANGE. An
+# object larger than that is placed within CLEVR_FOOTPRINT − its bounding radius, so the framing
+# stays the default one and the scene stays inside the model's locality box (0.64 / scene scale
+# = 4.48 world units; the tallest object's top, 2·0.7·scale, is then at most 2.8).
+CLEVR_MAX_BOUNDING_RADIUS = CLEVR_SIZES["large"] * math.sqrt(2.0)
+CLEVR_FOOTPRINT = CLEVR_XY_RANGE + CLEVR_MAX_BOUNDING_RADIUS
+# At 2× a large cube's bounding radius is 1.98, which leaves it a placement range of 2.01: three
+# large cubes (pairwise ≥ 4.21 apart) no longer fit together (such a draw is redrawn, ~5% of
+# 1–3-object layouts), and beyond 2.31× not even two do. Hence the cap.
+MAX_OBJECT_SCALE = 2.0
+# Layout draws (each up to 200 tries per object) before sample_clevr_layout gives up: only an
+# option set whose objects cannot fit (many objects at a large scale) gets near it.
+MAX_LAYOUT_DRAWS = 2000
 
 # ---- room family ----
 ROOM_NUM_CHAIRS = (1, 4)
@@ -177,7 +192,8 @@ class SceneObject:
          "bounding_radius": self.bounding_radius, "texture": self.material.texture,
          "parts": [p.to_json() for p in self.parts]}
     if self.shape in CLEVR_SHAPES:
-      d["radius"] = CLEVR_SIZES[self.size]
+      # The primitive's own half-size: CLEVR_SIZES[size] times the set's object_scale.
+      d["radius"] = self.parts[0].half_size[0]
     return d
 
 
@@ -264,13 +280,17 @@ def camera_to_world(cam: CameraSpec) -> np.ndarray:
 # =============================================================================================
 
 
-def _place(rng: np.random.Generator, radii: Sequence[float], xy_range: float,
+def _place(rng: np.random.Generator, radii: Sequence[float], xy_range,
            max_tries: int = 200) -> Optional[np.ndarray]:
-  """Rejection-samples ground positions [n, 2] whose bounding circles keep MIN_GAP apart."""
+  """Rejection-samples ground positions [n, 2] whose bounding circles keep MIN_GAP apart.
+
+  `xy_range`: one half-width for all objects, or one per object (scaled CLEVR objects).
+  """
+  ranges = [xy_range] * len(radii) if np.isscalar(xy_range) else list(xy_range)
   placed: list[np.ndarray] = []
   for i, r in enumerate(radii):
     for _ in range(max_tries):
-      xy = rng.uniform(-xy_range, xy_range, size=2)
+      xy = rng.uniform(-ranges[i], ranges[i], size=2)
       if all(np.linalg.norm(xy - placed[j]) >= r + radii[j] + MIN_GAP for j in range(i)):
         placed.append(xy)
         break
@@ -295,24 +315,78 @@ def _default_lights(rng: np.random.Generator) -> tuple[Light, ...]:
   return key, fill, back
 
 
-def sample_clevr_layout(rng: np.random.Generator) -> SceneSpec:
-  """5–7 CLEVR objects on the ground plane, no interpenetration (SPEC §3.5)."""
-  while True:
-    n = int(rng.integers(CLEVR_NUM_OBJECTS[0], CLEVR_NUM_OBJECTS[1] + 1))
+def object_count_range(family: str, min_objects: int = 0, max_objects: int = 0) -> tuple[int, int]:
+  """(lo, hi) objects per scene; 0 stands for the family's default bound (CLEVR 5–7, room 1–4)."""
+  default = CLEVR_NUM_OBJECTS if family == "clevr" else ROOM_NUM_CHAIRS
+  lo, hi = min_objects or default[0], max_objects or default[1]
+  return lo, hi
+
+
+class ObjectOptionError(ValueError):
+  """A bad min_objects / max_objects / object_scale; `field` names it (the CLI prints its flag)."""
+
+  def __init__(self, field: str, message: str):
+    super().__init__(message)
+    self.field = field
+
+
+def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0,
+                         object_scale: float = 1.0) -> None:
+  """ObjectOptionError (a ValueError) naming the offending field unless the options describe a
+  set this generator can draw."""
+  if family not in FAMILIES:
+    raise ValueError(f"unknown family {family!r}; choose one of {FAMILIES}")
+  for name, v in (("min_objects", min_objects), ("max_objects", max_objects)):
+    if v < 0 or v > MAX_OBJECTS[family]:
+      raise ObjectOptionError(name, f"{name} must lie in 0..{MAX_OBJECTS[family]} for the {family} "
+                                    f"family (0: the family's default), got {v}")
+  lo, hi = object_count_range(family, min_objects, max_objects)
+  if lo > hi:
+    raise ObjectOptionError("min_objects", f"min_objects ({lo}) must not exceed max_objects ({hi}) "
+                                           f"(0 stands for the {family} default "
+                                           f"{object_count_range(family)})")
+  if family != "clevr" and object_scale != 1.0:
+    raise ObjectOptionError("object_scale", f"object_scale applies to the clevr family only (the "
+                                            f"{family} family's objects have their own size "
+                                            f"ranges), got {object_scale}")
+  if not 0.0 < object_scale <= MAX_OBJECT_SCALE:
+    raise ObjectOptionError("object_scale", f"object_scale must lie in (0, {MAX_OBJECT_SCALE}] "
+                                            f"(larger objects no longer fit the default scene "
+                                            f"footprint), got {object_scale}")
+
+
+def sample_clevr_layout(rng: np.random.Generator, *, min_objects: int = 0, max_objects: int = 0,
+                        object_scale: float = 1.0) -> SceneSpec:
+  """5–7 CLEVR objects on the ground plane, no interpenetration (SPEC §3.5).
+
+  `min_objects`, `max_objects` (0: 5 and 7) and `object_scale` (multiplies every size) give easier
+  sets; with the defaults the random draws are exactly those of the default set.
+  """
+  check_object_options("clevr", min_objects, max_objects, object_scale)
+  lo, hi = object_count_range("clevr", min_objects, max_objects)
+  for _ in range(MAX_LAYOUT_DRAWS):
+    n = int(rng.integers(lo, hi + 1))
     shapes = [CLEVR_SHAPES[i] for i in rng.integers(0, len(CLEVR_SHAPES), size=n)]
     sizes = [list(CLEVR_SIZES)[i] for i in rng.integers(0, len(CLEVR_SIZES), size=n)]
     colours = [list(CLEVR_COLOURS)[i] for i in rng.integers(0, len(CLEVR_COLOURS), size=n)]
     materials = [CLEVR_MATERIALS[i] for i in rng.integers(0, len(CLEVR_MATERIALS), size=n)]
     yaws = rng.uniform(0.0, 2 * math.pi, size=n)
     # A cube's bounding circle is its diagonal half-length; spheres and cylinders have radius r.
-    radii = [CLEVR_SIZES[s] * (math.sqrt(2.0) if sh == "cube" else 1.0)
+    radii = [CLEVR_SIZES[s] * object_scale * (math.sqrt(2.0) if sh == "cube" else 1.0)
              for sh, s in zip(shapes, sizes)]
-    xy = _place(rng, radii, CLEVR_XY_RANGE)
+    # Objects no larger than the default ones use the default range (so the default draws are
+    # unchanged); larger ones are pulled in to keep their circle inside CLEVR_FOOTPRINT.
+    ranges = [CLEVR_XY_RANGE if r <= CLEVR_MAX_BOUNDING_RADIUS else CLEVR_FOOTPRINT - r
+              for r in radii]
+    xy = _place(rng, radii, ranges)
     if xy is not None:
       break
+  else:
+    raise RuntimeError(f"no layout of {lo}–{hi} CLEVR objects at object_scale {object_scale} "
+                       f"fits after {MAX_LAYOUT_DRAWS} draws; use fewer or smaller objects")
   objects = []
   for i in range(n):
-    r = CLEVR_SIZES[sizes[i]]
+    r = CLEVR_SIZES[sizes[i]] * object_scale
     yaw = float(yaws[i]) if shapes[i] != "sphere" else 0.0
     centre = (float(xy[i, 0]), float(xy[i, 1]), r)  # resting on z = 0
     kind = {"cube": "box", "sphere": "sphere", "cylinder": "cylinder"}[shapes[i]]
@@ -380,10 +454,16 @@ def _chair(rng: np.random.Generator, label: int, xy: np.ndarray, yaw: float,
       parts=tuple(parts), material=material, leg_material=leg_material)
 
 
-def sample_room_layout(rng: np.random.Generator) -> SceneSpec:
-  """1–4 primitive chairs on a textured floor inside four walls (SPEC §3.5)."""
+def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
+                       max_objects: int = 0) -> SceneSpec:
+  """1–4 primitive chairs on a textured floor inside four walls (SPEC §3.5).
+
+  `min_objects`, `max_objects` (0: 1 and 4) narrow the chair count; the defaults draw as before.
+  """
+  check_object_options("room", min_objects, max_objects)
+  lo, hi = object_count_range("room", min_objects, max_objects)
   while True:
-    n = int(rng.integers(ROOM_NUM_CHAIRS[0], ROOM_NUM_CHAIRS[1] + 1))
+    n = int(rng.integers(lo, hi + 1))
     dims = [{"seat_width": rng.uniform(1.3, 2.0), "seat_depth": rng.uniform(1.3, 2.0),
              "seat_height": rng.uniform(1.1, 1.7), "seat_thickness": rng.uniform(0.12, 0.25),
              "leg_thickness": rng.uniform(0.1, 0.2), "back_thickness": rng.uniform(0.1, 0.2),
@@ -1043,27 +1123,37 @@ def scene_rng(*, seed: int, family: str, split: str, index: int) -> np.random.Ge
 
 
 def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
-                   supersample: int = 2, max_attempts: int = 100) -> GeneratedScene:
+                   supersample: int = 2, max_attempts: int = 100, min_objects: int = 0,
+                   max_objects: int = 0, object_scale: float = 1.0) -> GeneratedScene:
   """Samples layouts and cameras until every object covers enough pixels of view 0, then renders.
+
+  `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
+  select an easier set; see `sample_clevr_layout`.
 
   Always renders on the CPU backend, so the files do not depend on the accelerator (if any) of the
   calling process, and a training process never shares its accelerator memory with the generator.
   """
   with jax.default_device(jax.local_devices(backend="cpu")[0]):
     return _generate_scene(rng, family=family, views=views, image_size=image_size,
-                           supersample=supersample, max_attempts=max_attempts)
+                           supersample=supersample, max_attempts=max_attempts,
+                           min_objects=min_objects, max_objects=max_objects,
+                           object_scale=object_scale)
 
 
 def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
-                    supersample: int, max_attempts: int) -> GeneratedScene:
-  if family not in FAMILIES:
-    raise ValueError(f"unknown family {family!r}; choose one of {FAMILIES}")
+                    supersample: int, max_attempts: int, min_objects: int, max_objects: int,
+                    object_scale: float) -> GeneratedScene:
+  check_object_options(family, min_objects, max_objects, object_scale)
   options = render_options(family, supersample)
   k = uorf_intrinsics(image_size)
   k32 = jnp.asarray(k, jnp.float32)
   threshold = min_visible_pixels(image_size)
   for attempt in range(1, max_attempts + 1):
-    spec = sample_clevr_layout(rng) if family == "clevr" else sample_room_layout(rng)
+    if family == "clevr":
+      spec = sample_clevr_layout(rng, min_objects=min_objects, max_objects=max_objects,
+                                 object_scale=object_scale)
+    else:
+      spec = sample_room_layout(rng, min_objects=min_objects, max_objects=max_objects)
     cameras = tuple(sample_cameras(rng, views))
     c2w = np.stack([camera_to_world(c) for c in cameras])
     arrays = scene_arrays(spec)
@@ -1118,13 +1208,17 @@ class _SceneTask:
   seed: int
   supersample: int
   folder: str
+  min_objects: int = 0
+  max_objects: int = 0
+  object_scale: float = 1.0
 
 
 def _write_scene(task: _SceneTask) -> dict:
   """Renders one scene and writes its files; returns its dataset.json entry."""
   rng = scene_rng(seed=task.seed, family=task.family, split=task.split, index=task.index)
   scene = generate_scene(rng, family=task.family, views=task.views, image_size=task.image_size,
-                         supersample=task.supersample)
+                         supersample=task.supersample, min_objects=task.min_objects,
+                         max_objects=task.max_objects, object_scale=task.object_scale)
   k_norm = normalised_intrinsics(scene.intrinsics, task.image_size)
   stems = []
   for a in range(task.views):
@@ -1153,10 +1247,18 @@ def _worker_init() -> None:
                              " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
 
 
+def is_default_objects(family: str, min_objects: int = 0, max_objects: int = 0,
+                       object_scale: float = 1.0) -> bool:
+  """True when the options draw the family's default set (explicit 5 and 7 count as default)."""
+  return (object_count_range(family, min_objects, max_objects) == object_count_range(family)
+          and object_scale == 1.0)
+
+
 def _split_header(*, family: str, split: str, seed: int, views: int, image_size: int,
-                  num_scenes: int, supersample: int) -> dict:
+                  num_scenes: int, supersample: int, min_objects: int = 0, max_objects: int = 0,
+                  object_scale: float = 1.0) -> dict:
   k = uorf_intrinsics(image_size)
-  return {
+  header = {
       "format": "slotlifter_jax.generated", "generator_version": GENERATOR_VERSION,
       "family": family, "subset": SUBSETS[family], "split": split, "seed": seed,
       "num_scenes": num_scenes, "image_size": [image_size, image_size], "views_per_scene": views,
@@ -1178,6 +1280,13 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
                "encoding": "RGB PNG, label l drawn as (g, g, g) with g = label_grey_levels[l]",
                "sample": "pixel centre", "views": "all"},
   }
+  # Only non-default sets record their object options, so default dataset.json files are unchanged
+  # (and _existing_split_matches tells the two apart by the key's presence).
+  if not is_default_objects(family, min_objects, max_objects, object_scale):
+    lo, hi = object_count_range(family, min_objects, max_objects)
+    header["objects"] = {"min_objects": lo, "max_objects": hi,
+                         "object_scale": float(object_scale)}
+  return header
 
 
 def _existing_split_matches(path: str, header: dict) -> bool:
@@ -1186,14 +1295,21 @@ def _existing_split_matches(path: str, header: dict) -> bool:
       old = json.load(f)
   except (OSError, ValueError):
     return False
-  return all(old.get(k) == v for k, v in json.loads(json.dumps(header)).items())
+  # The same keys too: a set with object options must not pass for a default one, or vice versa.
+  header = json.loads(json.dumps(header))
+  return set(old) - {"scenes"} == set(header) and all(old.get(k) == v for k, v in header.items())
 
 
 def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int, num_test: int,
                      views: int = 4, image_size: int = 128, seed: int = 0,
                      num_workers: Optional[int] = None, progress: bool = True,
-                     overwrite: bool = False, supersample: int = 2) -> dict:
+                     overwrite: bool = False, supersample: int = 2, min_objects: int = 0,
+                     max_objects: int = 0, object_scale: float = 1.0) -> dict:
   """Writes <out_dir>/<subset>_{train,val,test} and returns a summary (seconds per split).
+
+  `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
+  select an easier set (`sample_clevr_layout`); its dataset.json headers record them under
+  "objects", and each scene's entry lists its objects. The folder names stay the family's.
 
   A split whose folder already holds a dataset.json with the same generation parameters is kept
   as it is (this resumes an interrupted run); any other non-empty split folder is an error unless
@@ -1207,10 +1323,13 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
     raise ValueError(f"unknown family {family!r}; choose one of {FAMILIES}")
   if views < 1 or image_size < 8:
     raise ValueError(f"need views ≥ 1 and image_size ≥ 8, got {views}, {image_size}")
+  check_object_options(family, min_objects, max_objects, object_scale)
+  objects = dict(min_objects=min_objects, max_objects=max_objects, object_scale=object_scale)
   subset = SUBSETS[family]
   counts = {"train": num_train, "val": num_val, "test": num_test}
   headers = {s: _split_header(family=family, split=s, seed=seed, views=views,
-                              image_size=image_size, num_scenes=n, supersample=supersample)
+                              image_size=image_size, num_scenes=n, supersample=supersample,
+                              **objects)
              for s, n in counts.items()}
   paths = {s: os.path.join(out_dir, f"{subset}_{s}") for s in SPLITS}
   todo = []
@@ -1249,7 +1368,8 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
       os.makedirs(tmp)
       tasks = [_SceneTask(family=family, split=s, index=i, global_index=offsets[s] + i,
                           views=views, image_size=image_size, seed=seed,
-                          supersample=supersample, folder=tmp) for i in range(counts[s])]
+                          supersample=supersample, folder=tmp, **objects)
+               for i in range(counts[s])]
       results = pool.imap(_write_scene, tasks, chunksize=2) if pool else map(_write_scene, tasks)
       scenes = list(tqdm(results, total=len(tasks), desc=f"{subset}_{s}", unit="scene",
                          disable=not progress, dynamic_ncols=True))
