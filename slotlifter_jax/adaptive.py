@@ -255,6 +255,9 @@ class AdaptiveSettings:
   @classmethod
   def from_config(cls, config: ml_collections.ConfigDict) -> "AdaptiveSettings":
     r = config.render
+    if tuple(r.get("z_bounds", ())):
+      raise ValueError("render.adaptive: render.z_bounds gives every ray its own sample interval, "
+                       "the adaptive renderer shares one grid; set render.adaptive=False")
     settings = cls(stride=int(r.adaptive_stride), window=int(r.adaptive_window),
                    mass_eps=float(r.adaptive_mass_eps), fallback=bool(r.adaptive_fallback),
                    num_samples=int(r.num_samples), chunk=int(r.chunk))

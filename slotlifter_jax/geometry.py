@@ -159,6 +159,38 @@ def stratified_depths(*, near, far, num_samples: int, batch_shape: Sequence[int]
   return near + step * index  # [..., S]
 
 
+def slab_interval(*, origins: jax.Array, directions: jax.Array, near, far, z_min: float,
+                  z_max: float) -> tuple[jax.Array, jax.Array]:
+  """Each ray's part of [near, far] inside the horizontal slab z_min ≤ z ≤ z_max (world frame).
+
+  A scene on a floor has nothing to render below the floor or above its tallest object, and most
+  of [near, far] lies there (embedded clevr: about half of it below the floor). Sampling only the
+  slab puts every sample where the scene is. A ray that misses the slab within [near, far] keeps
+  the whole interval, so it is rendered exactly as without bounds.
+
+  Args:
+    origins, directions: [..., 3] rays (directions need not be unit; t is in their units).
+    near, far: scalars.
+    z_min, z_max: the slab, z_min < z_max.
+
+  Returns:
+    (near, far), each [...]: near ≤ far, both inside the scalar [near, far].
+  """
+  oz, dz = origins[..., 2], directions[..., 2]
+  flat = jnp.abs(dz) < 1e-9  # parallel to the slab: all of it or none of it
+  safe = jnp.where(flat, 1.0, dz)
+  t1, t2 = (z_min - oz) / safe, (z_max - oz) / safe
+  inside = (oz >= z_min) & (oz <= z_max)
+  t_lo = jnp.where(flat, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(t1, t2))
+  t_hi = jnp.where(flat, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(t1, t2))
+  lo = jnp.maximum(t_lo, near)
+  hi = jnp.minimum(t_hi, far)
+  miss = hi <= lo
+  near = jnp.broadcast_to(jnp.asarray(near, jnp.float32), oz.shape)
+  far = jnp.broadcast_to(jnp.asarray(far, jnp.float32), oz.shape)
+  return jnp.where(miss, near, lo), jnp.where(miss, far, hi)
+
+
 def sample_pdf(*, bins: jax.Array, weights: jax.Array, num_samples: int,
                key: Optional[jax.Array] = None) -> jax.Array:
   """Inverse-cdf sampling of a piecewise-constant pdf (NeRF hierarchical sampling, SPEC §1.5).

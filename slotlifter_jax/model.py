@@ -140,6 +140,10 @@ class SlotLifter(nn.Module):
   far: float = 20.0 / 7.0
   num_samples: int = 96
   num_fine_samples: int = 0
+  # () or (z_min, z_max): sample each ray only where it crosses this horizontal slab of the
+  # normalised scene frame (`geometry.slab_interval`), e.g. from just below the floor to above the
+  # tallest object; () samples all of [near, far] (the paper's).
+  z_bounds: tuple = ()
 
   def setup(self):
     self.encoder = ResUNet(out_dim=self.feature_dim, stem_width=self.encoder_stem_width,
@@ -216,6 +220,14 @@ class SlotLifter(nn.Module):
                                   density_scale=self.density_scale, last_delta=last_delta)
     return result, alloc
 
+  def ray_interval(self, ray_origins: jax.Array, ray_directions: jax.Array):
+    """[near, far] of every ray: the config's scalars, or their part inside `z_bounds`."""
+    if not self.z_bounds:
+      return self.near, self.far
+    z_min, z_max = (float(x) for x in self.z_bounds)
+    return geometry.slab_interval(origins=ray_origins, directions=ray_directions, near=self.near,
+                                  far=self.far, z_min=z_min, z_max=z_max)
+
   def render_rays(self, encoded: Encoded, *, source_images: jax.Array,
                   source_cam_to_world: jax.Array, source_intrinsics: jax.Array,
                   ray_origins: jax.Array, ray_directions: jax.Array, keep_ratio=1.0,
@@ -229,7 +241,8 @@ class SlotLifter(nn.Module):
     sources = dict(source_images=source_images, source_cam_to_world=source_cam_to_world,
                    source_intrinsics=source_intrinsics)
     rays = dict(ray_origins=ray_origins, ray_directions=ray_directions)
-    z = geometry.stratified_depths(near=self.near, far=self.far, num_samples=self.num_samples,
+    near, far = self.ray_interval(ray_origins, ray_directions)  # scalars or [B, R]
+    z = geometry.stratified_depths(near=near, far=far, num_samples=self.num_samples,
                                    batch_shape=(b, r),
                                    key=self.make_rng("sample") if train else None)  # [B, R, S]
     keep = None
@@ -319,6 +332,7 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       far=float(r.far),
       num_samples=int(r.num_samples),
       num_fine_samples=int(r.num_fine_samples),
+      z_bounds=tuple(float(x) for x in r.get("z_bounds", ())),
       feature_lifting=bool(m.feature_lifting),
       density_mode=str(m.density_mode),
   )

@@ -130,7 +130,8 @@ def test_parameter_counts_match_official():
   assert total == sum(ours.values())  # no parameters outside the named parts
   for name in official:
     assert abs(ours[name] - official[name]) <= 0.01 * official[name], name
-  # Exact, except flax's GRUCell, which folds b_hr, b_hz into b_ir, b_iz: 2·Ds = 512 fewer.
+  # Exact, except the slot GRU (flax GRUCell's layout), which folds b_hr, b_hz into b_ir, b_iz:
+  # 2·Ds = 512 fewer.
   expected = dict(official, slot_attention=official["slot_attention"] - 512)
   assert ours == expected
   assert abs(total - 10_389_124) <= 0.01 * 10_389_124
@@ -401,3 +402,21 @@ def test_runs_saved_before_the_switches_still_load():
   ablated.model.density_mode = "mlp"
   with pytest.raises(ckpt_lib.CheckpointMismatchError, match="model.density_mode"):
     ckpt_lib.check_compatible(ablated, saved, "old_run")
+
+
+def test_z_bounds_that_hold_every_ray_render_as_the_unbounded_grid():
+  """A slab that contains all of [near, far] of every ray changes nothing; a tight slab puts every
+  sample inside it."""
+  inputs = _inputs(1)
+  model = _tiny()
+  params = _init(model, inputs)
+  run = lambda m: jit(lambda p: m.apply(p, **inputs, train=False))(params)
+  plain, wide = run(model), run(_tiny(z_bounds=(-100.0, 100.0)))
+  for a, b in zip(jax.tree.leaves(plain.render), jax.tree.leaves(wide.render)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  tight = run(_tiny(z_bounds=(-0.2, 0.2))).render
+  height = inputs["ray_origins"][..., None, 2] + tight.z * inputs["ray_directions"][..., None, 2]
+  hits = np.asarray(jnp.any(jnp.abs(height) <= 0.2 + 1e-5, axis=-1))  # rays that reach the slab
+  assert hits.any()
+  inside = np.asarray(jnp.all(jnp.abs(height) <= 0.2 + 1e-5, axis=-1))
+  np.testing.assert_array_equal(inside[hits], True)
