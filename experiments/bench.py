@@ -21,6 +21,10 @@ Configurations (issue #7; every other setting is the paper's, configs/clevr.py):
   paper_batch the paper's 4 scenes × 1024 rays (A's settings), 2 accumulation chunks
   B           64×64, 32 samples, 2 scenes × 256 rays
   quick       configs/clevr.py:quick (what the README's first command trains)
+  fast        configs/clevr.py:fast, the scene-sized model, batches drawn on the device (a call
+              is a block of train.steps_per_dispatch steps; s/step = block time / steps)
+  fast_scan10 fast with 10 steps per dispatch (lax.scan over steps)
+  fast_host   fast's model fed as quick is: host batches, one step per dispatch
 The batches come from scenes of the embedded generator (two per batch, made in memory), so rays
 and source views look like training data; speed does not depend on the pixel values.
 """
@@ -115,8 +119,10 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
   rss_before = _status_bytes("VmRSS") or 0
   config, model, state, batches, train_step = bench_common.setup_step(name, steps + 2, train_scenes)
   c = config.train
+  # A device-sampled configuration's call is a block of steps_per_dispatch steps.
+  per_call = int(c.steps_per_dispatch) if config.data.sampler == "device" else 1
 
-  step_flops = flops_lib.count_flops(train_step, state, batches[0])
+  step_flops = flops_lib.count_flops(train_step, state, batches[0]) / per_call
   t = time.perf_counter()
   compiled = train_step.lower(state, batches[0]).compile()
   compile_s = time.perf_counter() - t
@@ -130,8 +136,24 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
     state, metrics = compiled(state, batch)
     jax.block_until_ready(state)
     if i >= 2:
-      times.append(time.perf_counter() - t)
-  loss = float(metrics["loss"])
+      times.append((time.perf_counter() - t) / per_call)
+  loss = float(np.asarray(metrics["loss"]).reshape(-1)[-1])
+  host_batch_s = None
+  if per_call == 1:
+    # What the host sampler adds per step (NumPy gather + transfer); the training loop overlaps
+    # it with the step on a thread, which on 2 cores competes with the step for a core.
+    from slotlifter_jax import train_step as step_lib
+    from slotlifter_jax.data import pipeline
+    sampler = pipeline.BatchSampler(train_scenes, batch_scenes=c.batch_scenes,
+                                    rays_per_scene=c.rays_per_scene, num_source_views=1,
+                                    novel_ray_prob=config.data.novel_ray_prob, seed=0)
+    mesh = step_lib.make_mesh()
+    host = []
+    for i in range(steps):
+      t = time.perf_counter()
+      jax.block_until_ready(step_lib.shard_batch(sampler.batch(i), mesh))
+      host.append(time.perf_counter() - t)
+    host_batch_s = statistics.median(host)
   train_peak_rss = _peak_rss_bytes()
   del batches
 
@@ -156,6 +178,7 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
       ray_chunks=int(c.ray_chunks),
       prng_impl=c.prng_impl, num_params=int(sum(x.size for x in jax.tree.leaves(state.params))),
       step_s_median=step_s, step_s_min=min(times), step_s_max=max(times), steps_timed=len(times),
+      steps_per_dispatch=per_call, host_batch_s=host_batch_s,
       rays_per_s=c.batch_scenes * c.rays_per_scene / step_s,
       step_gflop=step_flops / 1e9, achieved_gflops=achieved, matmul_peak_gflops=peak,
       mfu=achieved / peak, compile_s=compile_s, xla_temp_gb=None if temp_bytes is None else temp_bytes / 1e9,
@@ -177,12 +200,14 @@ def _platform_info() -> dict:
 
 
 def _table(rows: list[dict]) -> str:
-  head = ("config", "s/step", "rays/s", "GFLOP", "GFLOP/s", "peak", "MFU", "compile s",
+  head = ("config", "s/step", "host batch s", "rays/s", "GFLOP", "GFLOP/s", "peak", "MFU", "compile s",
           "temp GB", "peak RSS GB", "render 128² s")
   lines = [" | ".join(head), " | ".join("---" for _ in head)]
   for r in rows:
     lines.append(" | ".join([
-        r["config"], f"{r['step_s_median']:.3f}", f"{r['rays_per_s']:.0f}", f"{r['step_gflop']:.1f}",
+        r["config"], f"{r['step_s_median']:.4f}",
+        "on device" if r.get("host_batch_s") is None else f"{r['host_batch_s']:.4f}",
+        f"{r['rays_per_s']:.0f}", f"{r['step_gflop']:.1f}",
         f"{r['achieved_gflops']:.1f}", f"{r['matmul_peak_gflops']:.0f}", f"{100 * r['mfu']:.1f} %",
         f"{r['compile_s']:.1f}", f"{r['xla_temp_gb']:.2f}" if r["xla_temp_gb"] is not None else "–",
         f"{r['train_peak_rss_gb']:.2f}", f"{r['render_view_s']:.2f}"]))

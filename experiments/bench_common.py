@@ -23,6 +23,14 @@ CONFIGS = {
                                      "train.batch_scenes": 2, "train.rays_per_scene": 256,
                                      "train.grad_accum_chunks": 1}),
     "quick": dict(variant="quick", overrides={}),
+    # The scene-sized model; timed per block of train.steps_per_dispatch steps drawn on the device.
+    "fast": dict(variant="fast", overrides={}),
+    # fast with 10 steps per dispatch under lax.scan (XLA:CPU compiles a loop body's conv
+    # gradients poorly: slower, not faster).
+    "fast_scan10": dict(variant="fast", overrides={"train.steps_per_dispatch": 10}),
+    # fast's model fed as quick is (host batches, one step per dispatch): what the loop costs.
+    "fast_host": dict(variant="fast", overrides={"data.sampler": "host",
+                                                 "train.steps_per_dispatch": 1}),
 }
 
 
@@ -62,11 +70,14 @@ def setup_step(name: str, num_batches: int, train_scenes=None):
 
   Returns (config, model, state, batches, train_step): `num_batches` batches already on the mesh
   (rays of `train_scenes`, default freshly generated ones), the replicated initial state and the
-  jitted, state-donating step.
+  jitted, state-donating step. For a configuration with `data.sampler = "device"`, `train_step`
+  is the jitted block of `train.steps_per_dispatch` steps and every entry of `batches` is the
+  device-resident training split it draws from.
   """
   import jax
   from slotlifter_jax import model as model_lib
   from slotlifter_jax import train_step as step_lib
+  from slotlifter_jax.data import device_sampler
   from slotlifter_jax.data import pipeline
   cfg = config(name)
   c = cfg.train
@@ -76,10 +87,19 @@ def setup_step(name: str, num_batches: int, train_scenes=None):
                                   batch_scenes=c.batch_scenes, rays_per_scene=c.rays_per_scene,
                                   num_source_views=1, novel_ray_prob=cfg.data.novel_ray_prob, seed=0)
   mesh = step_lib.make_mesh()
-  batches = [step_lib.shard_batch(sampler.batch(i), mesh) for i in range(num_batches)]
   model = model_lib.build_model(cfg)
   key = jax.random.key(cfg.seed, impl=c.prng_impl)
   state = step_lib.init_state(model, cfg, sampler.batch(0), jax.random.fold_in(key, 0))
-  state = jax.device_put(state, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
-  train_step = step_lib.make_train_step(model, cfg, key=jax.random.fold_in(key, 1), mesh=mesh)
+  replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+  state = jax.device_put(state, replicated)
+  if cfg.data.sampler == "device":
+    split = jax.device_put(device_sampler.to_device_scenes(train_scenes, num_source_views=1),
+                           replicated)
+    batches = [split] * num_batches
+    train_step = step_lib.make_train_block(
+        model, cfg, key=jax.random.fold_in(key, 1), data_key=jax.random.fold_in(key, 2),
+        num_steps=int(c.steps_per_dispatch), mesh=mesh)
+  else:
+    batches = [step_lib.shard_batch(sampler.batch(i), mesh) for i in range(num_batches)]
+    train_step = step_lib.make_train_step(model, cfg, key=jax.random.fold_in(key, 1), mesh=mesh)
   return cfg, model, state, batches, train_step

@@ -49,6 +49,9 @@ def base_config() -> ml_collections.ConfigDict:
   r.far = 20.0 / 7.0
   r.num_samples = 96
   r.num_fine_samples = 0  # 0: no fine pass (synthetic sets); 64 for DTU/ScanNet
+  # () or (z_min, z_max) in the normalised frame: each ray is sampled only where it crosses that
+  # horizontal slab (model.SlotLifter.ray_interval). () = all of [near, far] (the paper's).
+  r.z_bounds = ()
   r.chunk = 4096  # rays per chunk when rendering a full view
   # Adaptive full-view rendering in --mode=eval and --mode=render (slotlifter_jax/adaptive.py,
   # issue #7): the decoder runs the whole grid on every stride-th pixel only and a window of
@@ -72,12 +75,29 @@ def base_config() -> ml_collections.ConfigDict:
   d.num_train_scenes = 1000
   d.num_val_scenes = 100
   d.num_test_scenes = 100
+  # Embedded generator only: objects per scene (0: the family's default, CLEVR 5–7, room 1–4) and
+  # a factor on every CLEVR object's size (capped at 2 to fit the default footprint). An easy set,
+  # e.g. 1–3 objects at 1.6×, tells a data problem from a model one; it gets its own cache folder.
+  d.min_objects = 0
+  d.max_objects = 0
+  d.object_scale = 1.0
   d.novel_ray_prob = 0.75  # probability that a scene's rays come from novel views only
   # "uniform" (paper) or "contrast": a share `contrast_mix` of the rays drawn towards pixels far
   # from their view's median colour (data/pipeline.py says why and what it changes).
   d.ray_sampling = "uniform"
   d.contrast_mix = 0.5
   d.has_masks = True
+  # () or (z_min, z_max): the horizontal slab of the normalised frame that holds the scene (from
+  # just below the floor to above the tallest object), for sets that have one. Variants that
+  # sample only inside the scene copy it to render.z_bounds.
+  d.scene_z_range = ()
+  # "host": NumPy batches on a thread (every format). "device": the training split kept on the
+  # device and each batch drawn inside the jitted step (fixed-source sets, uniform rays; see
+  # data/device_sampler.py), which also allows several steps per dispatch.
+  d.sampler = "host"
+  # Object-count curriculum ((start_step, max_objects), …), device sampler only: from each start
+  # step on only training scenes with at most max_objects objects are drawn. () = off.
+  d.curriculum = ()
 
   # ---- training (SPEC §2) ----
   t = c.train = ml_collections.ConfigDict()
@@ -108,6 +128,9 @@ def base_config() -> ml_collections.ConfigDict:
   t.eval_every = 5000
   t.eval_scenes = 8  # validation scenes used at each evaluation interval
   t.checkpoint_every = 2000
+  # Train steps per dispatch under lax.scan (data.sampler = "device" only); log_every,
+  # eval_every, checkpoint_every and num_steps must be multiples of it.
+  t.steps_per_dispatch = 1
   t.keep_checkpoints = 3
   # Scenes of a batch are split into this many chunks inside the step and their gradients averaged
   # (same gradient, a fraction of the activation memory): the paper's 4 × 1024 rays × 96 samples
@@ -123,14 +146,19 @@ def base_config() -> ml_collections.ConfigDict:
 
 
 def apply_variant(c: ml_collections.ConfigDict, variant: str) -> ml_collections.ConfigDict:
-  """Derives a variant from a data-set config by overriding a few fields (never by copying)."""
+  """Derives a variant from a data-set config by overriding a few fields (never by copying).
+
+  Variants compose left to right with '+', e.g. `clevr.py:fast+easy`.
+  """
   if variant in ("", "paper"):
     return c
-  if variant == "quick":
-    return quick(c)
-  if variant == "smoke":
-    return smoke(c)
-  raise ValueError(f"unknown variant {variant!r}: use '', 'paper', 'quick' or 'smoke'")
+  known = {"quick": quick, "smoke": smoke, "fast": fast, "easy": easy}
+  for name in variant.split("+"):
+    if name not in known:
+      raise ValueError(f"unknown variant {name!r}: use '', 'paper' or a '+'-joined list of "
+                       f"{sorted(known)}")
+    c = known[name](c)
+  return c
 
 
 def quick(c):
@@ -220,4 +248,68 @@ def smoke(c):
   c.train.eval_every = 3
   c.train.eval_scenes = 1
   c.train.checkpoint_every = 3
+  return c
+
+
+def fast(c):
+  """The scene-sized CPU model: the quick variant's method and loss with no more model than a
+  64 px CLEVR scene needs, trained for many cheap steps so the masking phase lasts long enough
+  for objects to emerge (issue "Objects emerge on this CPU"; experiments/README.md, "Emergence").
+
+  Each cut, what it saves and what it costs (step costs: `python experiments/bench.py
+  --configs=quick,fast`, experiments/README.md):
+  - slot width Ds 256 → 64, slot MLP 1024 → 128: a 64 px scene has at most 7 objects of a few
+    feature cells each; the slots' cost is small, but the decoder's cross-attention keys and the
+    mapping run on Ds, and narrower slots train faster under Lion's fixed-size steps.
+  - point width C 64 → 32, FFN 256 → 64, colour MLP 64 → 32, 4 → 2 allocation blocks: the
+    decoder is almost all of the step (it runs per sample); these cut its FLOPs about 8×. Costs
+    capacity for view-dependent detail, which the diffuse CLEVR floor hardly has.
+  - samples only inside the scene's slab (`render.z_bounds` = `data.scene_z_range`), 16 per ray:
+    half of [near, far] lies below the floor, so 16 samples in the slab are denser than the
+    quick model's 32 over the whole interval.
+  - batch 4 scenes × 128 rays instead of 2 × 256: the same decoder cost, and slot attention sees
+    twice as many scenes per step (it is sensitive to batch size: OSRT, BO-QSA). 8 × 64 costs
+    more, because the encoder then runs on 8 source views per step.
+  - the batch is drawn on the device, inside the jitted step (`data.sampler = "device"`): no
+    NumPy gather, no copy, no prefetch thread competing for one of the two cores. Several steps
+    per dispatch (`train.steps_per_dispatch` > 1, a `lax.scan` over steps) are supported but
+    slower on XLA:CPU, which compiles the encoder's convolution gradients poorly inside a loop
+    body (`fast_scan10` in experiments/bench.py).
+  - schedules for 30 000 steps with masking and slot noise over 20 000: the paper finds objects
+    only when about 30 000 steps keep most rays without lifted features (its masking-decay table);
+    the quick variant's 3 000 is the regime where the paper itself fails.
+  Validation every 1000 steps on 20 scenes gives the emergence curves.
+  """
+  c = quick(c)
+  c.model.slot_dim = 64
+  c.model.slot_mlp_dim = 128
+  c.model.point_dim = 32
+  c.model.num_blocks = 2
+  c.model.ffn_dim = 64
+  c.model.colour_hidden = 32
+  c.render.num_samples = 16
+  c.render.z_bounds = tuple(c.data.scene_z_range)
+  c.train.batch_scenes = 4
+  c.train.rays_per_scene = 128
+  c.data.sampler = "device"
+  c.train.steps_per_dispatch = 1
+  c.train.num_steps = 30_000
+  c.train.warmup_steps = 500
+  c.train.decay_steps = 15_000
+  c.train.mask_anneal_steps = 20_000
+  c.train.noise_anneal_steps = 20_000
+  c.train.locality_steps = 25_000
+  c.train.log_every = 50
+  c.train.eval_every = 1000
+  c.train.eval_scenes = 20
+  c.train.checkpoint_every = 1000
+  return c
+
+
+def easy(c):
+  """The ladder's lower rung: 1–3 CLEVR objects at 1.6× size instead of 5–7 (its own embedded
+  set). A model that cannot split these has a defect, not too small a budget."""
+  c.data.min_objects = 1
+  c.data.max_objects = 3
+  c.data.object_scale = 1.6
   return c

@@ -22,7 +22,9 @@ from tqdm import tqdm
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import train_step as step_lib
+from slotlifter_jax import emergence
 from slotlifter_jax import evaluate
+from slotlifter_jax.data import device_sampler
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import pipeline
 from slotlifter_jax.data import registry
@@ -81,6 +83,74 @@ class MetricWriter:
   def close(self):
     self._jsonl.close()
     self._tb.close()
+
+
+SAMPLERS = ("host", "device")
+
+
+def _check_sampler(config, train_scenes) -> bool:
+  """Validates data.sampler, data.curriculum and train.steps_per_dispatch; True for "device"."""
+  sampler = config.data.get("sampler", "host")
+  if sampler not in SAMPLERS:
+    raise ValueError(f"data.sampler is {sampler!r}; use one of {SAMPLERS}")
+  block = int(config.train.get("steps_per_dispatch", 1))
+  curriculum = config.data.get("curriculum", ())
+  if sampler == "host":
+    if block != 1:
+      raise ValueError(f"train.steps_per_dispatch={block} needs data.sampler=device (the host "
+                       f"sampler feeds one step per dispatch)")
+    if curriculum:
+      raise ValueError("data.curriculum needs data.sampler=device")
+    return False
+  if config.data.ray_sampling != "uniform":
+    raise ValueError(f"data.ray_sampling={config.data.ray_sampling!r} needs data.sampler=host")
+  if block < 1:
+    raise ValueError(f"train.steps_per_dispatch is {block}; it must be ≥ 1")
+  for field in ("log_every", "eval_every", "checkpoint_every", "num_steps"):
+    if int(config.train[field]) % block:
+      raise ValueError(f"train.{field}={config.train[field]} is not a multiple of "
+                       f"train.steps_per_dispatch={block}")
+  device_sampler.check_curriculum(curriculum, train_scenes)
+  return True
+
+
+class _RunClock:
+  """Wall-clock seconds of training of a run, summed over its resumes (the `wall_s` of
+  metrics.jsonl): a resumed run continues from the last `wall_s` it logged."""
+
+  def __init__(self, workdir: str):
+    self._offset = _last_logged_wall_s(os.path.join(workdir, "metrics.jsonl"))
+    self._start = time.time()
+
+  def elapsed(self) -> float:
+    return self._offset + time.time() - self._start
+
+
+def _last_logged_wall_s(path: str) -> float:
+  last = 0.0
+  if not os.path.exists(path):
+    return last
+  with open(path) as f:
+    for line in f:
+      try:
+        record = json.loads(line)
+      except json.JSONDecodeError:  # a line cut by a kill: the records before it stand
+        continue
+      if "wall_s" in record:
+        last = float(record["wall_s"])
+  return last
+
+
+def _record_emergence(workdir: str) -> None:
+  """Writes DIR/emergence.json (time to decomposition, the curves) and logs its summary. A bad
+  metrics log must not turn a finished run into a failed one, so errors become a warning."""
+  try:
+    result = emergence.write_emergence(workdir)
+  except (OSError, ValueError) as e:
+    logging.warning("emergence.json not written: %s", e)
+    return
+  for line in result.get("summary", []):
+    logging.info("%s", line)
 
 
 COLLAPSED_DIR = "collapsed"  # where a collapsed attempt is moved before a restart (never deleted)
@@ -148,6 +218,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
       batch_scenes=config.train.batch_scenes, rays_per_scene=config.train.rays_per_scene,
       novel_ray_prob=config.data.novel_ray_prob, seed=config.seed,
       ray_sampling=config.data.ray_sampling, contrast_mix=config.data.contrast_mix)
+  on_device = _check_sampler(config, train_scenes)
   model = model_lib.build_model(config)
   key = jax.random.key(config.seed, impl=config.train.prng_impl)
   state = step_lib.init_state(model, config, sampler.batch(0), jax.random.fold_in(key, 0))
@@ -158,8 +229,22 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   if checkpoints.latest_step() is not None:
     state = checkpoints.restore(state)
     logging.info("resumed from step %d", int(state.step))
-  state = jax.device_put(state, jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec()))
-  train_step = step_lib.make_train_step(model, config, key=jax.random.fold_in(key, 1), mesh=mesh)
+  replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+  state = jax.device_put(state, replicated)
+  block = int(config.train.get("steps_per_dispatch", 1))
+  if on_device:
+    device_scenes = jax.device_put(
+        device_sampler.to_device_scenes(train_scenes, num_source_views=config.data.num_source_views),
+        replicated)
+    blocks = {}  # block length → compiled block (a resume off the block grid needs length 1 once)
+    def run_block(state, n):
+      if n not in blocks:
+        blocks[n] = step_lib.make_train_block(
+            model, config, key=jax.random.fold_in(key, 1), data_key=jax.random.fold_in(key, 2),
+            num_steps=n, mesh=mesh)
+      return blocks[n](state, device_scenes)
+  else:
+    train_step = step_lib.make_train_step(model, config, key=jax.random.fold_in(key, 1), mesh=mesh)
   validator = evaluate.Validator(model, config, val_scenes[:config.train.eval_scenes], workdir)
   writer = MetricWriter(workdir)
 
@@ -167,27 +252,39 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   total = config.train.num_steps
   last_val = {}
   restart = False
-  batches = pipeline.prefetch((sampler.batch(s) for s in range(start, total)), size=2)
+  batches = None if on_device else pipeline.prefetch(
+      (sampler.batch(s) for s in range(start, total)), size=2)
+  clock = _RunClock(workdir)
   t_log = time.time()
+  done = start
   try:
     with _StopFlag() as stop, tqdm(total=total, initial=start, desc="train", unit="step",
                                    dynamic_ncols=True) as bar:
-      for step in range(start, total):
-        batch = step_lib.shard_batch(next(batches), mesh)
-        state, metrics = train_step(state, batch)
+      while done < total:
+        if on_device:
+          n = block if done % block == 0 and done + block <= total else 1
+          state, stacked = run_block(state, n)
+          metrics = jax.tree.map(lambda x: x[-1], stacked)
+          in_row_max = stacked["nonfinite_in_row"]
+        else:
+          n = 1
+          batch = step_lib.shard_batch(next(batches), mesh)
+          state, metrics = train_step(state, batch)
+          in_row_max = metrics["nonfinite_in_row"]
         # Waiting for the new state before dispatching the next step keeps XLA from allocating
-        # the next step's temp buffer while the last one is alive (PERF_NOTES: doubled RSS).
+        # the next step's temp buffer while the last one is alive (doubled RSS otherwise).
         jax.block_until_ready(state.step)
-        done = step + 1
-        bar.update(1)
+        done += n
+        bar.update(n)
         if done % config.train.log_every == 0 or done == total:
           m = jax.device_get(metrics)
           now = time.time()
           m["steps_per_sec"] = config.train.log_every / max(now - t_log, 1e-9)
           t_log = now
+          m["wall_s"] = clock.elapsed()
           writer.write(done, "train", m)
           bar.set_postfix(loss=f"{m['loss']:.4f}", psnr=f"{m['psnr']:.2f}")
-        in_row = int(metrics["nonfinite_in_row"]) if not bool(metrics["finite"]) else 0
+        in_row = int(np.max(jax.device_get(in_row_max)))
         if in_row:
           logging.warning("step %d: non-finite loss or gradient, update skipped (%d in a row)",
                           done, in_row)
@@ -197,6 +294,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
                 f"checkpoint in {workdir}/checkpoints is intact.")
         if done % config.train.eval_every == 0 or done == total:
           last_val = validator.run(state.params, done)
+          last_val["wall_s"] = clock.elapsed()
+          last_val["num_val_scenes"] = len(validator.scenes)
           writer.write(done, "val", last_val)
           checkpoints.save_best(state, last_val["score"])
           if last_val.get("collapsed") == 1.0 and done >= collapse_settled_step(config.train):
@@ -220,7 +319,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     checkpoints.wait()
     checkpoints.close()
     writer.close()
-    batches.close()
+    if batches is not None:
+      batches.close()
+  _record_emergence(workdir)
   if restart:
     return train_and_evaluate(_restart_after_collapse(config, workdir, done), workdir)
   if last_val.get("collapsed") == 1.0:

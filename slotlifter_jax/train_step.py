@@ -22,6 +22,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import schedules
+from slotlifter_jax.data import device_sampler
 
 RNG_STREAMS = ("dropout", "noise", "sample", "mask")
 # Batch entries with a ray axis (axis 1), which ray chunks split; the others are per scene.
@@ -92,9 +93,11 @@ def to_unit_colour(colour, *, signed_colour: bool):
 def init_state(model, config, batch: dict, key: jax.Array) -> TrainState:
   signed = config.model.colour_range == "signed"
   rngs = {"params": key, **{s: jax.random.fold_in(key, i + 1) for i, s in enumerate(RNG_STREAMS)}}
-  variables = jax.jit(lambda: model.init(
-      rngs, **model_inputs(batch, signed_colour=signed), slot_noise_sigma=1.0, keep_ratio=1.0,
-      locality=True, train=False))()
+  # Keys and batch are arguments, not constants baked into the program, so every init of the same
+  # model and shapes is one compilation (and one persistent-cache entry).
+  variables = jax.jit(lambda rngs, inputs: model.init(
+      rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True, train=False))(
+          rngs, model_inputs(batch, signed_colour=signed))
   params = variables["params"]
   tx = make_optimizer(config.train)
   zero = lambda: jnp.zeros((), jnp.int32)  # distinct buffers: the step donates every leaf
@@ -130,12 +133,9 @@ def make_grad_fn(model, config) -> Callable:
   return jax.value_and_grad(loss_fn, has_aux=True)
 
 
-def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) -> Callable:
-  """Returns step(state, batch) -> (state, metrics), compiled once, state donated.
-
-  `key` is the run's base key; the step's keys are fold_in(key, step). With a mesh, the batch is
-  sharded over its scene axis along mesh axis 'data' and the state is replicated.
-  """
+def make_step_fn(model, config, *, key: jax.Array) -> Callable:
+  """The pure step(state, batch) -> (state, metrics) that `make_train_step` and `make_train_block`
+  compile. `key` is the run's base key; the step's keys are fold_in(key, step)."""
   tx = make_optimizer(config.train)
   scene_chunks = int(config.train.grad_accum_chunks)
   ray_chunks = int(config.train.get("ray_chunks", 1))
@@ -191,12 +191,66 @@ def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) 
         finite=finite, nonfinite_in_row=in_row, **sched)
     return new_state, metrics
 
+  return step
+
+
+def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) -> Callable:
+  """Returns step(state, batch) -> (state, metrics), compiled once, state donated.
+
+  `key` is the run's base key; the step's keys are fold_in(key, step). With a mesh, the batch is
+  sharded over its scene axis along mesh axis 'data' and the state is replicated.
+  """
+  # The key is an argument of the compiled program rather than a constant in it, so runs and tests
+  # that differ only in their seed share one compilation (and one persistent-cache entry).
+  def keyed(state, batch, key):
+    return make_step_fn(model, config, key=key)(state, batch)
   if mesh is None:
-    return jax.jit(step, donate_argnums=0)
-  replicated = NamedSharding(mesh, P())
-  return jax.jit(step, donate_argnums=0,
-                 in_shardings=(replicated, batch_sharding(mesh)),
-                 out_shardings=(replicated, replicated))
+    compiled = jax.jit(keyed, donate_argnums=0)
+  else:
+    replicated = NamedSharding(mesh, P())
+    compiled = jax.jit(keyed, donate_argnums=0,
+                       in_shardings=(replicated, batch_sharding(mesh), replicated),
+                       out_shardings=(replicated, replicated))
+  return lambda state, batch: compiled(state, batch, key)
+
+
+def make_train_block(model, config, *, key: jax.Array, data_key: jax.Array, num_steps: int,
+                     mesh: Mesh | None = None, unroll: int | bool = 1) -> Callable:
+  """Returns block(state, scenes) -> (state, metrics [num_steps]): `num_steps` train steps in one
+  dispatch, each on a batch drawn on the device (data/device_sampler.py), state donated.
+
+  Step t's batch comes from fold_in(data_key, t) and its model keys from fold_in(key, t), as in
+  `make_train_step`, so a run is a pure function of (seed, step) whatever the block length, and a
+  resumed run is exact. One dispatch per block pays the host's per-step costs (dispatch, metric
+  transfer, the wait before the next step) once per block: with a small decoder they were as large
+  as the step itself (experiments/README.md, "Where the time of a small step goes").
+  """
+  d, t = config.data, config.train
+  stages = tuple((int(a), int(b)) for a, b in d.get("curriculum", ()))
+  draw = dict(batch_scenes=int(t.batch_scenes), rays_per_scene=int(t.rays_per_scene),
+              novel_ray_prob=float(d.novel_ray_prob))
+
+  def block(state: TrainState, scenes, key, data_key):  # keys as arguments: see make_train_step
+    step = make_step_fn(model, config, key=key)
+    def body(state, _):
+      limit = device_sampler.curriculum_limit(state.step, stages) if stages else None
+      batch = device_sampler.sample_batch(scenes, jax.random.fold_in(data_key, state.step),
+                                          max_objects=limit, **draw)
+      if mesh is not None:
+        batch = jax.lax.with_sharding_constraint(batch, batch_sharding(mesh))
+      return step(state, batch)
+    if num_steps == 1:  # no loop at all: XLA:CPU compiles a loop body's convolutions worse
+      state, metrics = body(state, None)
+      return state, jax.tree.map(lambda x: x[None], metrics)
+    return jax.lax.scan(body, state, None, length=num_steps, unroll=unroll)
+
+  if mesh is None:
+    compiled = jax.jit(block, donate_argnums=0)
+  else:
+    replicated = NamedSharding(mesh, P())
+    compiled = jax.jit(block, donate_argnums=0, in_shardings=(replicated,) * 4,
+                       out_shardings=(replicated, replicated))
+  return lambda state, scenes: compiled(state, scenes, key, data_key)
 
 
 def make_mesh(devices=None) -> Mesh:

@@ -133,33 +133,71 @@ def _final_params(workdir, config):
   return int(state.step), state.params
 
 
-@pytest.mark.slow
-def test_resume_after_interrupt_is_exact(tmp_path, monkeypatch):
-  config = load_config()
-  config.train.num_steps = 6
+def _straight_and_interrupted_runs(config, tmp_path, monkeypatch, factory: str):
+  """Trains `config` straight, then again with SIGINT during the 3rd call of the compiled step
+  that step_lib.<factory> makes (the loop checkpoints and leaves) and a resume; checks that both
+  end at step 6 with identical parameters."""
   train.train_and_evaluate(config, str(tmp_path / "straight"))
-
-  # Interrupted run: SIGINT arrives during step 3; the loop checkpoints and leaves, then resumes.
-  real_make = step_lib.make_train_step
+  real_make = getattr(step_lib, factory)
   def make_interrupting(*args, **kwargs):
     inner = real_make(*args, **kwargs)
     calls = {"n": 0}
-    def step(state, batch):
+    def step(state, data):
       calls["n"] += 1
       if calls["n"] == 3:
         os.kill(os.getpid(), signal.SIGINT)
-      return inner(state, batch)
+      return inner(state, data)
     return step
-  monkeypatch.setattr(step_lib, "make_train_step", make_interrupting)
+  monkeypatch.setattr(step_lib, factory, make_interrupting)
   train.train_and_evaluate(load_config_with(config), str(tmp_path / "resumed"))
   assert _final_params(str(tmp_path / "resumed"), config)[0] == 3
-  monkeypatch.setattr(step_lib, "make_train_step", real_make)
+  monkeypatch.setattr(step_lib, factory, real_make)
   train.train_and_evaluate(load_config_with(config), str(tmp_path / "resumed"))
 
   step_a, params_a = _final_params(str(tmp_path / "straight"), config)
   step_b, params_b = _final_params(str(tmp_path / "resumed"), config)
   assert step_a == step_b == 6
   jax.tree.map(np.testing.assert_array_equal, params_a, params_b)
+
+
+@pytest.mark.slow
+def test_resume_after_interrupt_is_exact(tmp_path, monkeypatch):
+  config = load_config()
+  config.train.num_steps = 6
+  _straight_and_interrupted_runs(config, tmp_path, monkeypatch, "make_train_step")
+
+
+@pytest.mark.slow
+def test_device_sampled_run_resumes_exactly_and_records_its_clock(tmp_path, monkeypatch):
+  """data.sampler=device: batches drawn inside the step are a function of (seed, step), so an
+  interrupted and resumed run ends bit-identical; every record carries the run's wall clock,
+  which a resume continues, and the run writes emergence.json."""
+  config = load_config()
+  config.data.sampler = "device"
+  config.train.num_steps = 6
+  _straight_and_interrupted_runs(config, tmp_path, monkeypatch, "make_train_block")
+  with open(tmp_path / "resumed" / "metrics.jsonl") as f:
+    records = [json.loads(line) for line in f]
+  clock = [r["wall_s"] for r in records]
+  assert all(b >= a for a, b in zip(clock, clock[1:])), clock  # continues across the resume
+  assert [r["step"] for r in records if r["kind"] == "val"] == [3, 6]
+  with open(tmp_path / "resumed" / "emergence.json") as f:
+    assert json.load(f)["num_validations"] == 2
+
+
+def test_sampler_settings_are_checked_before_training(tmp_path):
+  config = load_config()
+  config.train.steps_per_dispatch = 2
+  with pytest.raises(ValueError, match="steps_per_dispatch=2 needs data.sampler=device"):
+    train.train_and_evaluate(config, str(tmp_path / "a"))
+  config.data.sampler = "device"
+  config.train.log_every = 3
+  with pytest.raises(ValueError, match="train.log_every=3 is not a multiple of "
+                                       "train.steps_per_dispatch=2"):
+    train.train_and_evaluate(config, str(tmp_path / "b"))
+  config.data.sampler = "disk"
+  with pytest.raises(ValueError, match="data.sampler is 'disk'"):
+    train.train_and_evaluate(config, str(tmp_path / "c"))
 
 
 def load_config_with(config):
