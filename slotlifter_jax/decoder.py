@@ -25,7 +25,7 @@ the attention output projections and the FFN's last layer use xavier-uniform wit
 MLP's hidden layers are kaiming-uniform (he_uniform); the Conv1d keeps PyTorch's default init.
 
 `remat_scan=True` runs the blocks as one `nn.scan` over stacked parameters with `nn.remat` on the
-body (../shared/PERF_NOTES.md: the only layout in which rematerialisation lowers memory on
+body (docs/performance.md §4: the only layout in which rematerialisation lowers memory on
 XLA:CPU). Dropout is written by hand with a traced rate so the per-block rates can be scanned, and
 the dropout keys are split once at the top so both layouts compute the same function with the same
 randomness.
@@ -59,7 +59,8 @@ LEAKY_SLOPE = 0.01
 
 # Dropout decisions are made on 16-bit uniforms: keep iff u16 < round(keep·2^16). The keep
 # probability is then exact to 2^-17 (rate 0.0667 becomes 0.06667 ± 8e-6), and one 32-bit random
-# word serves two masks. Random bits were a fifth of the paper-sized step on CPU (PERF_NOTES).
+# word serves two masks. Random bits were a large share of the paper-sized step on CPU
+# (docs/performance.md §2).
 _U16 = 1 << 16
 
 
@@ -83,7 +84,7 @@ def conv1d_taps(x: jax.Array) -> jax.Array:
 
   A Dense(3C → C) on this is exactly Conv1d(C, C, kernel 3, padding 1) along S (PyTorch's tap k
   multiplies x_{s+k−1}), and avoids lax.conv, whose weight gradient is pathological inside
-  nn.scan on XLA:CPU (../shared/PERF_NOTES.md).
+  nn.scan on XLA:CPU (docs/performance.md §3).
   """
   zero = jnp.zeros_like(x[..., :1, :])
   prev = jnp.concatenate([zero, x[..., :-1, :]], axis=-2)  # [..., S, C]

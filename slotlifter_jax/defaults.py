@@ -110,14 +110,15 @@ def base_config() -> ml_collections.ConfigDict:
   t.checkpoint_every = 2000
   t.keep_checkpoints = 3
   # Scenes of a batch are split into this many chunks inside the step and their gradients averaged
-  # (same gradient, a fraction of the activation memory): the paper's 4 × 1024 rays × 96 samples
-  # need about 23 GB of temporaries in one piece (PERF_NOTES), two chunks fit a 24 GB machine.
+  # (same gradient, a fraction of the activation memory): in one piece the paper's 4 × 1024 rays ×
+  # 96 samples need about twice the temporaries of bench config A; two chunks fit a 24 GB
+  # machine (docs/performance.md §4).
   t.grad_accum_chunks = 2
   # …and the rays of each chunk into this many parts (memory mode: experiments/README.md).
   t.ray_chunks = 1
   # Random-bit generator of every training key. "unsafe_rbg" makes dropout/masking bits cheaper
-  # (PERF_NOTES: threefry dropout masks are ~20 % of a step on CPU) and compiles faster; both are
-  # deterministic in (seed, step), so resumes stay exact.
+  # (threefry dropout masks were a large share of a CPU step: docs/performance.md §2) and compiles
+  # faster; both are deterministic in (seed, step), so resumes stay exact.
   t.prng_impl = "threefry2x32"
   return c
 

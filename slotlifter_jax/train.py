@@ -176,7 +176,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
         batch = step_lib.shard_batch(next(batches), mesh)
         state, metrics = train_step(state, batch)
         # Waiting for the new state before dispatching the next step keeps XLA from allocating
-        # the next step's temp buffer while the last one is alive (PERF_NOTES: doubled RSS).
+        # the next step's temp buffer while the last one is alive, which doubles RSS
+        # (docs/performance.md §1).
         jax.block_until_ready(state.step)
         done = step + 1
         bar.update(1)
