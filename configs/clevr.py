@@ -1,7 +1,7 @@
 """CLEVR-567 (uORF folder format), or the embedded procedural clevr set when data.root is empty.
 
-Default = the paper's settings (SPEC §1–2): 128×128, 1 source view, K = 8, D = 64, 96 samples,
-4 scenes × 1024 rays, 250k steps, locality for 50k steps.
+Default = the paper's settings (docs/method.md §1–2): 128×128, 1 source view, K = 8, D = 64, 96
+samples, 4 scenes × 1024 rays, 250k steps, locality for 50k steps.
 
 Run:
   python -m slotlifter_jax.main --config=configs/clevr.py:quick --workdir=runs/clevr_quick

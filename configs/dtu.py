@@ -1,7 +1,7 @@
 """DTU (pixelNeRF rs_dtu_4 layout): 300×400 images, 4 nearest source views, coarse + fine passes.
 
-Paper settings (SPEC §1–3): K = 8, D = 32, 64 + 64 samples, near/far [0.1, 5.0], colours in
-[−1, 1], no locality constraint; 1 target view × 1024 rays per step.
+Paper settings (docs/method.md §1–3): K = 8, D = 32, 64 + 64 samples, near/far [0.1, 5.0], colours
+in [−1, 1], no locality constraint; 1 target view × 1024 rays per step.
 Run: python -m slotlifter_jax.main --config=configs/dtu.py --config.data.root=/path/to/rs_dtu_4 --workdir=DIR
 """
 

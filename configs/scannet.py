@@ -1,7 +1,8 @@
 """ScanNet (NerfingMVS test split): 480×640 frames, 4 nearest source views, coarse + fine passes.
 
-Paper settings (SPEC §1–3): K = 8, D = 32, 64 + 64 samples, near/far [0.1, 10.0] metres, colours
-in [−1, 1], no locality constraint; 1 target view × 1024 rays per step. Reference: PSNR 28.36.
+Paper settings (docs/method.md §1–3): K = 8, D = 32, 64 + 64 samples, near/far [0.1, 10.0] metres,
+colours in [−1, 1], no locality constraint; 1 target view × 1024 rays per step. Reference: PSNR
+28.36 (docs/method.md §5).
 Run: python -m slotlifter_jax.main --config=configs/scannet.py --config.data.root=/path/to/scannet --workdir=DIR
 """
 

@@ -1,4 +1,4 @@
-"""Ablations of the paper's Table 5 (issue #6, SPEC §5) on the embedded room set, over seeds.
+"""Ablations of the paper's Table 5 (issue #6, docs/method.md §5) on the embedded room set.
 
   python experiments/ablations.py --dry_run     # the plan and its estimated time, nothing run
   python experiments/ablations.py               # train + evaluate, then write the table

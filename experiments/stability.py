@@ -1,4 +1,4 @@
-"""Seed stability (issue #6, SPEC §6): one config over N seeds — collapse rate and the spread.
+"""Seed stability (issue #6, docs/method.md §6): one config over N seeds, collapse rate, spread.
 
   python experiments/stability.py --dry_run     # the plan and its estimated time, nothing run
   python experiments/stability.py               # train + evaluate, then write the table

@@ -1,9 +1,9 @@
 """Adaptive full-view rendering: the allocation decoder only where a scene needs it (issue #7).
 
-Vocabulary (SPEC.md): H×W image, S samples of the evaluation grid (`geometry.stratified_depths`
-without jitter, the plain path's z), Wn window samples (`render.adaptive_window`), s the proposal
-stride (`render.adaptive_stride`), ε the mass left out of a significant range
-(`render.adaptive_mass_eps`), R rays of a chunk, K slots.
+Vocabulary (docs/method.md §0): H×W image, S samples of the evaluation grid
+(`geometry.stratified_depths` without jitter, the plain path's z), Wn window samples
+(`render.adaptive_window`), s the proposal stride (`render.adaptive_stride`), ε the mass left out of
+a significant range (`render.adaptive_mass_eps`), R rays of a chunk, K slots.
 
 Why a window of the grid, not fewer or other samples: the allocation transformer's per-ray
 self-attention and its Conv1d act along the samples of a ray, so a ray's result depends on its whole

@@ -1,31 +1,32 @@
-"""Collapse detection from slot usage on a fixed probe batch (SPEC §6).
+"""Collapse detection from slot usage on a fixed probe batch (docs/method.md §6).
 
-Vocabulary (SPEC): K slots (the empty slot excluded, as in the rendered segmentation of §1.5),
-N pixels or rays of one probe view; leading `...` dimensions are independent views.
+Vocabulary (docs/method.md §0): K slots (the empty slot excluded, as in the rendered segmentation
+of docs/method.md §1.5), N pixels or rays of one probe view; leading `...` dimensions are
+independent views.
 
-SPEC §6 names three ways a run collapses, reported for uORF, uOCF, OSRT and SlotLifter without
-random masking: (1) all foreground in one slot, (2) a uniform segmentation (every pixel shared
-evenly by all slots, so no slot means anything), (3) black renders. The statistics here are cheap
-pure `jnp` functions of a rendered probe batch, so the trainer can log them at every evaluation
-interval and flag a run, and they jit.
+docs/method.md §6 names three ways a run collapses, reported for uORF, uOCF, OSRT and SlotLifter
+without random masking: (1) all foreground in one slot, (2) a uniform segmentation (every pixel
+shared evenly by all slots, so no slot means anything), (3) black renders. The statistics here are
+cheap pure `jnp` functions of a rendered probe batch, so the trainer can log them at every
+evaluation interval and flag a run, and they jit.
 
 Thresholds and why:
 - DOMINANT_SHARE = 0.9: in every synthetic set a view shows several objects (CLEVR 5–7; the room
   sets several chairs), so one slot owning > 90 % of the foreground means objects are merged.
   A view with a single object would trip it legitimately; `is_collapsed` therefore averages over
   the probe views and the probe batch should be drawn from multi-object scenes.
-- MIN_ACTIVE_SLOTS = 2: fewer than two slots owning ≥ 1 % of the foreground (the SPEC §4
+- MIN_ACTIVE_SLOTS = 2: fewer than two slots owning ≥ 1 % of the foreground (the docs/method.md §4
   definition of an active slot) is the same failure counted the other way.
 - UNIFORM_ENTROPY = 0.9: the mean per-pixel slot entropy, normalised by log K (1 = uniform).
   A confident pixel (0.9 on one slot, rest spread) sits near 0.25 at K = 8, a pixel split evenly
   between two slots at 0.33; > 0.9 is only reached when nearly every pixel is close to 1/K.
   Uniform segmentations escape the share tests: their argmax is decided by noise.
-  Early in training (slot noise and masking still annealing, SPEC §1.2–1.3) segmentations are
-  legitimately diffuse; the flag means collapse only once those schedules have run.
+  Early in training (slot noise and masking still annealing, docs/method.md §1.2–1.3) segmentations
+  are legitimately diffuse; the flag means collapse only once those schedules have run.
 - BLACK_RATIO = 0.1, MIN_TARGET_MEAN = 0.05: MSE pulls the mean colour into place first, so a
   trained renderer's mean intensity is close to the target's. A mean below a tenth of the target's
-  means the density collapsed (no background colour is added, SPEC §1.5, so Σw ≈ 0 renders black).
-  Targets darker than 0.05 on average are not judged.
+  means the density collapsed (no background colour is added, docs/method.md §1.5, so Σw ≈ 0 renders
+  black). Targets darker than 0.05 on average are not judged.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ import jax.numpy as jnp
 
 DOMINANT_SHARE = 0.9
 MIN_ACTIVE_SLOTS = 2
-ACTIVE_FRACTION = 0.01  # SPEC §4: a slot is active if it owns ≥ 1 % of the foreground
+ACTIVE_FRACTION = 0.01  # docs/method.md §4: a slot is active if it owns ≥ 1 % of the foreground
 UNIFORM_ENTROPY = 0.9
 BLACK_RATIO = 0.1
 MIN_TARGET_MEAN = 0.05
@@ -74,9 +75,9 @@ def slot_usage(
 ) -> SlotUsage:
   """Slot-usage statistics of rendered segmentations [..., N, K] (soft or one-hot).
 
-  Ownership is by argmax, as in the evaluation (SPEC §4); rows are renormalised over the K real
-  slots for the entropy. foreground_mask [..., N] (bool or {0, 1}) restricts the statistics to the
-  ground-truth foreground; None uses every pixel (then the background slot counts as one of the
+  Ownership is by argmax, as in the evaluation (docs/method.md §4); rows are renormalised over the K
+  real slots for the entropy. foreground_mask [..., N] (bool or {0, 1}) restricts the statistics to
+  the ground-truth foreground; None uses every pixel (then the background slot counts as one of the
   slots, which is the right reading when no masks exist).
   """
   seg = jnp.asarray(segmentation, jnp.float32)

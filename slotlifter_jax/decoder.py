@@ -1,4 +1,4 @@
-"""Allocation transformer, point-slot mapping, slot density and colour MLP (SPEC §1.4).
+"""Allocation transformer, point-slot mapping, slot density and colour MLP (docs/method.md §1.4).
 
 Shapes: B scenes, R rays per scene, S samples per ray, K slots (K+1 with the empty slot s_∅ at
 index 0), Ds slot width (256), C point width (64).
@@ -16,8 +16,8 @@ then a final LayerNorm. The mapping turns the result into point-slot weights
 W = softmax(q(h)·k(S')ᵀ/√C) over K+1, the slot feature F_s = Linear(W·S'), and the slot-based
 density σ = exp(s_σ)·Σ_{k≥1} W_k·ReLU(A_k). The colour MLP maps F_s + E_p to RGB.
 
-`density_mode="mlp"` is the paper's "without slot-based density" ablation (SPEC §5): σ comes from
-a small head on h instead (`mlp_density`); W, F_s and the colour are unchanged.
+`density_mode="mlp"` is the paper's "without slot-based density" ablation (docs/method.md §5): σ
+comes from a small head on h instead (`mlp_density`); W, F_s and the colour are unchanged.
 
 Initialisers follow the official code's `linear` helper: xavier-uniform kernels and zero biases;
 the attention output projections and the FFN's last layer use xavier-uniform with gain
@@ -25,7 +25,7 @@ the attention output projections and the FFN's last layer use xavier-uniform wit
 MLP's hidden layers are kaiming-uniform (he_uniform); the Conv1d keeps PyTorch's default init.
 
 `remat_scan=True` runs the blocks as one `nn.scan` over stacked parameters with `nn.remat` on the
-body (../shared/PERF_NOTES.md: the only layout in which rematerialisation lowers memory on
+body (docs/performance.md §4: the only layout in which rematerialisation lowers memory on
 XLA:CPU). Dropout is written by hand with a traced rate so the per-block rates can be scanned, and
 the dropout keys are split once at the top so both layouts compute the same function with the same
 randomness.
@@ -59,7 +59,8 @@ LEAKY_SLOPE = 0.01
 
 # Dropout decisions are made on 16-bit uniforms: keep iff u16 < round(keep·2^16). The keep
 # probability is then exact to 2^-17 (rate 0.0667 becomes 0.06667 ± 8e-6), and one 32-bit random
-# word serves two masks. Random bits were a fifth of the paper-sized step on CPU (PERF_NOTES).
+# word serves two masks. Random bits were a large share of the paper-sized step on CPU
+# (docs/performance.md §2).
 _U16 = 1 << 16
 
 
@@ -83,7 +84,7 @@ def conv1d_taps(x: jax.Array) -> jax.Array:
 
   A Dense(3C → C) on this is exactly Conv1d(C, C, kernel 3, padding 1) along S (PyTorch's tap k
   multiplies x_{s+k−1}), and avoids lax.conv, whose weight gradient is pathological inside
-  nn.scan on XLA:CPU (../shared/PERF_NOTES.md).
+  nn.scan on XLA:CPU (docs/performance.md §3).
   """
   zero = jnp.zeros_like(x[..., :1, :])
   prev = jnp.concatenate([zero, x[..., :-1, :]], axis=-2)  # [..., S, C]
@@ -103,7 +104,7 @@ def dot_product_attention(*, q: jax.Array, k: jax.Array, v: jax.Array) -> jax.Ar
 
 
 def locality_mask(*, logits: jax.Array, points: jax.Array, box: float, enabled) -> jax.Array:
-  """The locality constraint (SPEC §1.4): outside the box only s_∅ and slot 1 may take a point.
+  """Locality constraint (docs/method.md §1.4): outside the box only s_∅ and slot 1 take a point.
 
   logits [..., K+1], points [..., 3] in the normalised scene frame, `enabled` a (traced) bool.
   Where enabled and any |coordinate| > box, logits of slot indices ≥ 2 become MASKED_LOGIT.
@@ -128,7 +129,7 @@ def slot_density(*, logits: jax.Array, weights: jax.Array, log_scale: jax.Array)
 def mlp_density(*, raw: jax.Array, log_scale: jax.Array) -> jax.Array:
   """σ = exp(s_σ)·softplus(o) ≥ 0 [...] from a density head's output o [..., 1].
 
-  The "without slot-based density" ablation (SPEC §5). softplus, not exp: it is the smooth
+  The "without slot-based density" ablation (docs/method.md §5). softplus, not exp: it is the smooth
   counterpart of the ReLU in `slot_density`, so σ grows linearly with the head's output as the slot
   formula does with A_k, and the learned log scale s_σ with its init `density_log_init` (which the
   quick variant lowers so a ray's first samples start transparent) means the same in both modes;
@@ -280,8 +281,8 @@ class SlotDecoder(nn.Module):
   """Allocation transformer + point-slot mapping + density (official `JointDecoder`).
 
   density_mode "slot" (the paper's): σ = exp(s_σ)·Σ_{k≥1} W_k·ReLU(A_k). "mlp" (the ablation
-  "without slot-based density", SPEC §5): σ = `mlp_density` of Dense(C) → ReLU → Dense(1) on the
-  transformer's output h, with the same learned s_σ; only then do `density_hidden` and
+  "without slot-based density", docs/method.md §5): σ = `mlp_density` of Dense(C) → ReLU → Dense(1)
+  on the transformer's output h, with the same learned s_σ; only then do `density_hidden` and
   `density_out` parameters exist.
   """
   width: int = 64

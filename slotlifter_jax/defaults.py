@@ -1,8 +1,8 @@
 """The base configuration every data-set config in `configs/` starts from.
 
-It holds the paper's settings for the synthetic sets (SPEC §1–2). A data-set config overrides the few
-fields that differ (K, near/far, feature width, fine pass, …) and derives its variants (`smoke`,
-`quick`) by overriding a few more, so no setting is written twice.
+It holds the paper's settings for the synthetic sets (docs/method.md §1–2). A data-set config
+overrides the few fields that differ (K, near/far, feature width, fine pass, …) and derives its
+variants (`smoke`, `quick`) by overriding a few more, so no setting is written twice.
 """
 
 import ml_collections
@@ -12,7 +12,7 @@ def base_config() -> ml_collections.ConfigDict:
   c = ml_collections.ConfigDict()
   c.seed = 0
 
-  # ---- model (SPEC §1) ----
+  # ---- model (docs/method.md §1) ----
   m = c.model = ml_collections.ConfigDict()
   m.feature_dim = 64  # D: 64 synthetic sets, 32 DTU/ScanNet
   m.encoder_stem_width = 64
@@ -38,12 +38,12 @@ def base_config() -> ml_collections.ConfigDict:
   m.density_log_init = 0.0  # initial value of the learned log density scale s_σ (official: 0)
   m.locality_box = 0.64  # |coordinate| beyond which only slots 0 and 1 may take a point
   m.remat_scan = False  # nn.scan + nn.remat over the decoder blocks: less memory, more time
-  # Ablations of SPEC §5 (experiments/ablations.py); the defaults are the paper's method.
+  # Ablations of docs/method.md §5 (experiments/ablations.py); the defaults are the paper's method.
   # "Without random masking" needs no switch: train.mask_max = 0 keeps every ray's features.
   m.feature_lifting = True  # False: point feature F_p = E_p only (no lifted features)
   m.density_mode = "slot"  # "slot": σ from W and A (§1.4); "mlp": a small head on h (decoder.py)
 
-  # ---- rendering (SPEC §1.5) ----
+  # ---- rendering (docs/method.md §1.5) ----
   r = c.render = ml_collections.ConfigDict()
   r.near = 6.0 / 7.0
   r.far = 20.0 / 7.0
@@ -62,7 +62,7 @@ def base_config() -> ml_collections.ConfigDict:
   r.adaptive_mass_eps = 0.01  # render weight a proposal's significant range may leave out
   r.adaptive_fallback = True  # a pixel whose neighbours' ranges overflow the window: whole grid
 
-  # ---- data (SPEC §3) ----
+  # ---- data (docs/method.md §3) ----
   d = c.data = ml_collections.ConfigDict()
   d.format = "uorf"  # uorf | uocf | dtu | scannet
   d.root = ""  # empty: the embedded default set, generated once into the cache folder
@@ -99,7 +99,7 @@ def base_config() -> ml_collections.ConfigDict:
   # step on only training scenes with at most max_objects objects are drawn. () = off.
   d.curriculum = ()
 
-  # ---- training (SPEC §2) ----
+  # ---- training (docs/method.md §2) ----
   t = c.train = ml_collections.ConfigDict()
   t.num_steps = 250_000
   t.batch_scenes = 4
@@ -133,14 +133,15 @@ def base_config() -> ml_collections.ConfigDict:
   t.steps_per_dispatch = 1
   t.keep_checkpoints = 3
   # Scenes of a batch are split into this many chunks inside the step and their gradients averaged
-  # (same gradient, a fraction of the activation memory): the paper's 4 × 1024 rays × 96 samples
-  # need about 23 GB of temporaries in one piece (PERF_NOTES), two chunks fit a 24 GB machine.
+  # (same gradient, a fraction of the activation memory): in one piece the paper's 4 × 1024 rays ×
+  # 96 samples need about twice the temporaries of bench config A; two chunks fit a 24 GB
+  # machine (docs/performance.md §4).
   t.grad_accum_chunks = 2
   # …and the rays of each chunk into this many parts (memory mode: experiments/README.md).
   t.ray_chunks = 1
   # Random-bit generator of every training key. "unsafe_rbg" makes dropout/masking bits cheaper
-  # (PERF_NOTES: threefry dropout masks are ~20 % of a step on CPU) and compiles faster; both are
-  # deterministic in (seed, step), so resumes stay exact.
+  # (threefry dropout masks were a large share of a CPU step: docs/performance.md §2) and compiles
+  # faster; both are deterministic in (seed, step), so resumes stay exact.
   t.prng_impl = "threefry2x32"
   return c
 

@@ -1,4 +1,4 @@
-"""The image encoder: an IBRNet-style ResUNet trained from scratch (SPEC §1.1).
+"""The image encoder: an IBRNet-style ResUNet trained from scratch (docs/method.md §1.1).
 
 Shapes: N images (N = B·V when the model encodes every source view of every scene at once),
 H×W image size, h×w = ceil(H/4)×ceil(W/4) feature-map size, D feature width, C channels.
@@ -20,7 +20,7 @@ InstanceNorm with affine parameters (GroupNorm with one channel per group, ε = 
 ×2 as in the official code. For other sizes the official code upsamples ×2 and zero-pads the skip
 tensor to match (e.g. 300×400 DTU images give a 76×100 map whose last row sees a zero skip); we
 instead resample to the skip tensor's size, so the map is always ceil(H/4)×ceil(W/4) and its pixel
-grid spans the image exactly as the lifting step (SPEC §1.3) assumes.
+grid spans the image exactly as the lifting step (docs/method.md §1.3) assumes.
 
 Weights use PyTorch's default convolution init (uniform ±1/√fan_in for kernel and bias), since the
 official model does not override it.

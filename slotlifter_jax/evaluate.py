@@ -1,7 +1,8 @@
-"""Evaluation (SPEC §4): per-scene metrics of rendered views, the `--mode=eval` entry point, and
-validation during training.
+"""Evaluation (docs/method.md §4): per-scene metrics of rendered views, the `--mode=eval` entry
+point, and validation during training.
 
-Vocabulary (SPEC): K slots, V source views, H×W image size, n rendered views of a scene.
+Vocabulary (docs/method.md §0): K slots, V source views, H×W image size, n rendered views of a
+scene.
 
 Every view of every scene is rendered at full resolution (`render_views.SceneRenderer`, chunked),
 source views included. Per scene:
@@ -15,8 +16,8 @@ rendered segmentation (`metrics.segmentation_from_render`). Segmentation metrics
 sets with masks (config.data.has_masks and scene.masks); they are never computed on made-up masks.
 
 `evaluate_split` writes DIR/eval/<split>/metrics.json and per_scene.csv (temp file + rename). The
-official-code quirks of SPEC §8 that move these numbers are off by default and recorded in the
-JSON when on: `lpips_quirk` (LPIPS fed [0, 1] images) and `nv_ari_last_view` (uORF's NV-ARI and
+official-code quirks of docs/method.md §8 that move these numbers are off by default and recorded in
+the JSON when on: `lpips_quirk` (LPIPS fed [0, 1] images) and `nv_ari_last_view` (uORF's NV-ARI and
 NV-FG-ARI from the last novel view only).
 """
 
@@ -93,7 +94,7 @@ class EvalSetupError(ValueError):
 
 
 def lpips_net_for(config: ml_collections.ConfigDict) -> str:
-  """SPEC §4: AlexNet LPIPS for the synthetic sets, VGG for DTU and ScanNet."""
+  """docs/method.md §4: AlexNet LPIPS for the synthetic sets, VGG for DTU and ScanNet."""
   real = config.model.colour_range == "signed" or config.data.format in ("dtu", "scannet")
   return "vgg" if real else "alex"
 
@@ -122,8 +123,9 @@ def scene_metrics(rendered: render_views.RenderedViews, scene: Scene, view_indic
     image_metrics: also SSIM and LPIPS of the novel views (the full evaluation; validation during
       training skips them for speed).
     lpips_net: "alex" or "vgg" (`lpips_net_for`).
-    lpips_quirk: feed [0, 1] images to LPIPS as the official evaluation does (SPEC §8).
-    nv_ari_last_view: NV-ARI and NV-FG-ARI from the scene's last novel view only (uORF, SPEC §8).
+    lpips_quirk: feed [0, 1] images to LPIPS as the official evaluation does (docs/method.md §8).
+    nv_ari_last_view: NV-ARI and NV-FG-ARI from the scene's last novel view only (uORF,
+      docs/method.md §8).
 
   Keys are present only when the scene has views of their kind (and masks for the segmentation
   metrics); values may be NaN (e.g. FG-ARI when no view shows foreground).
@@ -538,7 +540,7 @@ class Validator:
     self.scenes = scenes
     self.workdir = workdir
     self.num_pictures = num_pictures
-    self.use_masks = bool(config.data.has_masks)  # never score made-up masks (SPEC §3.3)
+    self.use_masks = bool(config.data.has_masks)  # never score made-up masks (docs/method.md §3.3)
     self.has_masks = self.use_masks and all(s.masks is not None for s in scenes)
     self.near, self.far = config.render.near, config.render.far
     self.locality_steps = int(config.train.locality_steps)
@@ -554,7 +556,7 @@ class Validator:
       if not self.use_masks:
         scene = dataclasses.replace(scene, masks=None, mask_views=None)
       per_scene.append(scene_metrics(rendered, scene, views))
-      # The fixed validation scenes are the collapse probe (SPEC §6): their novel views.
+      # The fixed validation scenes are the collapse probe (docs/method.md §6): their novel views.
       novel = list(scene.novel_indices)
       probe_seg.append(rendered.segmentation[novel].reshape(len(novel), -1,
                                                              rendered.segmentation.shape[-1]))
@@ -576,7 +578,7 @@ class Validator:
           segmentation=np.concatenate(probe_seg), rendered=np.concatenate(probe_rgb),
           target=np.concatenate(probe_target),
           foreground=np.concatenate(probe_fg) if self.has_masks else None))
-    # Model selection (SPEC §4): NV-ARI where the set has masks, else novel-view PSNR.
+    # Model selection (docs/method.md §4): NV-ARI where the set has masks, else novel-view PSNR.
     score_key = "nv_ari" if self.has_masks else "psnr_novel"
     result["score"] = result.get(score_key, np.nan)
     if not np.isfinite(result["score"]):

@@ -1,8 +1,8 @@
-"""Cameras, rays, depth sampling and positional encoding (SPEC §1.3, §1.5, §3.1).
+"""Cameras, rays, depth sampling and positional encoding (docs/method.md §1.3, §1.5, §3.1).
 
-Vocabulary (SPEC.md): B scenes, V source views, R rays per scene, S samples per ray, H×W image size,
-C channels. Every function here is pure, takes keyword-only arguments and works on any leading batch
-shape `...`.
+Vocabulary (docs/method.md §0): B scenes, V source views, R rays per scene, S samples per ray, H×W
+image size, C channels. Every function here is pure, takes keyword-only arguments and works on any
+leading batch shape `...`.
 
 Camera convention (stated once, see `slotlifter_jax/__init__.py`): `cam_to_world` is a 4×4 OpenCV
 camera-to-world pose (camera x right, y down, z forward); `intrinsics` is a 3×3 pixel-unit matrix K.
@@ -106,7 +106,9 @@ def world_to_cam(*, points: jax.Array, cam_to_world: jax.Array) -> jax.Array:
 
 
 def cam_to_pix(*, points_cam: jax.Array, intrinsics: jax.Array) -> Projection:
-  """Perspective projection (SPEC §1.3): (u, v) = (K·p)[:2] / z. [..., 3] -> pix [..., 2], depth [...].
+  """Perspective projection (docs/method.md §1.3): (u, v) = (K·p)[:2] / z.
+
+  [..., 3] -> pix [..., 2], depth [...].
 
   Points at or behind the camera (z ≤ MIN_DEPTH) get finite but meaningless pixels; callers must use
   `depth > 0` as part of the validity test.
@@ -127,7 +129,7 @@ def world_to_pix(*, points: jax.Array, cam_to_world: jax.Array,
 
 def stratified_depths(*, near, far, num_samples: int, batch_shape: Sequence[int],
                       key: Optional[jax.Array] = None, endpoint: bool = False) -> jax.Array:
-  """Depths linear in z, with one uniform jitter per ray when a key is given (SPEC §1.5).
+  """Depths linear in z, with one uniform jitter per ray when a key is given (docs/method.md §1.5).
 
   With `endpoint=False` (default) [near, far] is cut into S equal bins of width Δ = (far − near)/S and
   z_i = near + (i + u)·Δ: u ~ U[0, 1) shared by all samples of a ray in training, u = 0 without a key
@@ -193,7 +195,7 @@ def slab_interval(*, origins: jax.Array, directions: jax.Array, near, far, z_min
 
 def sample_pdf(*, bins: jax.Array, weights: jax.Array, num_samples: int,
                key: Optional[jax.Array] = None) -> jax.Array:
-  """Inverse-cdf sampling of a piecewise-constant pdf (NeRF hierarchical sampling, SPEC §1.5).
+  """Inverse-cdf sampling of a piecewise-constant pdf (NeRF hierarchical, docs/method.md §1.5).
 
   Args:
     bins: [..., M + 1] bin edges, sorted (the official fine pass passes the S − 1 midpoints of the
@@ -240,7 +242,7 @@ def fine_depths(*, z: jax.Array, weights: jax.Array, num_samples: int,
   """Coarse + importance samples for the fine pass, sorted (official `sample_fine_pts`).
 
   The pdf lives on the S − 1 midpoints of the coarse depths with the S − 2 inner coarse weights (the
-  first and last weights are dropped, as in NeRF). Note SPEC §8: the official code passes
+  first and last weights are dropped, as in NeRF). Note docs/method.md §8: the official code passes
   `det=is_train`, i.e. it samples deterministically in training and randomly at evaluation; the
   caller chooses by giving a key or not.
 
@@ -264,7 +266,7 @@ def points_along_rays(*, origins: jax.Array, directions: jax.Array, z: jax.Array
 
 
 def positional_encoding(x: jax.Array, num_freqs: int = 10) -> jax.Array:
-  """sin and cos of 2^k·x, k = 0..F−1, no π factor, raw input not included (SPEC §1.3).
+  """sin and cos of 2^k·x, k = 0..F−1, no π factor, raw input not included (docs/method.md §1.3).
 
   Feature order follows the official `positional_encoding`: first all sines, then all cosines; within
   each half channel-major, i.e. index c·F + k holds frequency 2^k of channel c:

@@ -1,7 +1,9 @@
-"""Feature lifting: project sample points into the source views and gather RGB + features (SPEC §1.3).
+"""Feature lifting: project sample points into the source views, gather RGB + features
+(docs/method.md §1.3).
 
-Vocabulary (SPEC.md): B scenes, V source views, R rays per scene, S samples per ray, D feature width,
-H×W source-image size, h×w feature-map size, C channels. Pure functions, keyword-only arguments.
+Vocabulary (docs/method.md §0): B scenes, V source views, R rays per scene, S samples per ray, D
+feature width, H×W source-image size, h×w feature-map size, C channels. Pure functions, keyword-only
+arguments.
 
 Sampling convention: bilinear with align_corners=True semantics (pixel centres at integer
 coordinates, the corner pixels' centres map onto each other between resolutions) and zero padding
@@ -21,9 +23,9 @@ import jax.numpy as jnp
 from slotlifter_jax import geometry
 
 # Projected coordinates up to this far outside the image (in pixels) snap onto the border pixel
-# (SPEC §1.3, the official projector's "avoid numerical precision errors" clamp).
+# (docs/method.md §1.3, the official projector's "avoid numerical precision errors" clamp).
 BORDER_SNAP = 0.5
-# Denominator guard of the visibility weights valid / (Σ valid + ε) (SPEC §1.3, official 1e-6).
+# Guard of the visibility weights valid / (Σ valid + ε) (docs/method.md §1.3; official 1e-6).
 VISIBILITY_EPS = 1e-6
 
 
@@ -90,7 +92,7 @@ def _project_one_view(points, cam_to_world, intrinsics, image, features):
 
 def project_and_gather(*, points: jax.Array, cam_to_world: jax.Array, intrinsics: jax.Array,
                        images: jax.Array, features: jax.Array) -> Lifted:
-  """Lifts source-view RGB and features onto 3D sample points (SPEC §1.3).
+  """Lifts source-view RGB and features onto 3D sample points (docs/method.md §1.3).
 
   A point is valid in a view iff it is in front of the camera (z > 0) and its projection lies in
   [−0.5, W−0.5]×[−0.5, H−0.5]; coordinates in the half-pixel band outside [0, W−1]×[0, H−1] snap to
@@ -113,7 +115,7 @@ def project_and_gather(*, points: jax.Array, cam_to_world: jax.Array, intrinsics
 
 
 def fuse_views(*, values: jax.Array, valid: jax.Array) -> jax.Array:
-  """Combines the V views of each point (SPEC §1.3).
+  """Combines the V views of each point (docs/method.md §1.3).
 
   V = 1: valid·values, [..., C]. Note the official code multiplies *after* its Linear layer
   (valid·Linear(x)), so a module reproducing it must mask the Linear output, not rely on this
@@ -135,7 +137,7 @@ def fuse_views(*, values: jax.Array, valid: jax.Array) -> jax.Array:
 
 def sample_ray_keep(*, key: jax.Array, keep_ratio, shape, shared_across_batch: bool = True
                     ) -> jax.Array:
-  """Per-ray keep mask for random masking of the lifted features (SPEC §1.3), float 0/1 [B, R].
+  """Per-ray keep mask for random masking of lifted features (docs/method.md §1.3): 0/1 [B, R].
 
   A ray keeps its lifted features with probability keep_ratio. With shared_across_batch=True (the
   default, as in the official code, which draws one [1, R] mask) ray r is masked in every scene of the

@@ -25,9 +25,9 @@ flags.DEFINE_string("checkpoint", "", "eval/render: best, latest or a step (defa
 flags.DEFINE_bool("overwrite", False, "eval: replace an existing DIR/eval/<split>/metrics.json.")
 flags.DEFINE_integer("max_scenes", None, "eval: only the first N scenes of the split.")
 flags.DEFINE_bool("lpips_quirk", False, "eval: feed [0, 1] images to LPIPS as the official code "
-                  "does (SPEC §8).")
+                  "does (docs/method.md §8).")
 flags.DEFINE_bool("nv_ari_last_view", False, "eval: NV-ARI from the last novel view only, as "
-                  "uORF (SPEC §8).")
+                  "uORF (docs/method.md §8).")
 flags.DEFINE_string("scenes", "0", "render: comma-separated scene indices into the split.")
 flags.DEFINE_integer("orbit_frames", 24, "render: frames of the orbit GIF (at most 64).")
 flags.mark_flags_as_required(["config", "workdir"])

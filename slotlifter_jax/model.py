@@ -1,4 +1,4 @@
-"""SlotLifter: the encoder, slot attention, feature lifting and slot decoder composed (SPEC §1).
+"""SlotLifter: encoder, slot attention, lifting and slot decoder composed (docs/method.md §1).
 
 Shapes: B scenes, V source views, R rays per scene, S samples per ray (S + fine samples in the fine
 pass), K slots (K+1 with the empty slot), D feature width, Ds slot width, C point width (64),
@@ -15,19 +15,20 @@ computed once. The rng streams are 'params', 'dropout' (residual dropout, stocha
 'noise' (slot initialisation), 'sample' (stratified jitter, fine samples) and 'mask' (random masking
 of the lifted features); only 'params' is needed when `train` is False.
 
-Choices where the SPEC leaves room or the official code differs:
+Choices where the method (docs/method.md) leaves room or the official code differs:
 - Random masking keeps or drops a ray's lifted features alike in every scene of the batch
   (`mask_shared_across_batch=True`, as the official code), and the same per-ray mask applies to the
-  fine pass (the official code never masks the fine pass, SPEC §8).
+  fine pass (the official code never masks the fine pass, docs/method.md §8).
 - Fine samples are random in training and deterministic at evaluation (the official code does the
-  opposite, SPEC §8).
+  opposite, docs/method.md §8).
 - The fine pass owns its lifting Linear as well as its allocation transformer, mapping and colour
   MLP, because in the official code all three live in the separate fine `NeRF`/`JointDecoder`;
   the encoder, slots and positional Linear are shared.
-- Ablation switches of SPEC §5, each defaulting to the paper's method: `feature_lifting=False`
-  ("without feature lifting") skips the projection and gather, so F_p = E_p and no lifting Linear
-  exists (the encoder still feeds slot attention); `density_mode="mlp"` ("without slot-based
-  density", decoder.SlotDecoder). "Without random masking" is `train.mask_max = 0` (keep ratio 1).
+- Ablation switches of docs/method.md §5, each defaulting to the paper's method:
+  `feature_lifting=False` ("without feature lifting") skips the projection and gather, so F_p = E_p
+  and no lifting Linear exists (the encoder still feeds slot attention); `density_mode="mlp"`
+  ("without slot-based density", decoder.SlotDecoder). "Without random masking" is
+  `train.mask_max = 0` (keep ratio 1).
 - Stratified samples use `geometry.stratified_depths`' default bins (all samples inside
   [near, far]); `volume_render` puts the transparent remainder at `far`.
 """
@@ -49,9 +50,9 @@ from slotlifter_jax import render
 from slotlifter_jax.encoder import ResUNet
 from slotlifter_jax.slot_attention import SlotAttention
 
-# Top-level submodules whose parameters follow the "head" learning-rate schedule (SPEC §2: colour
-# MLP, lifting Linear, positional Linear); everything else is "backbone". Prefixes, so the fine
-# pass's `colour_mlp_fine` and `lift_proj_fine` are included.
+# Top-level submodules whose parameters follow the "head" learning-rate schedule (docs/method.md §2:
+# colour MLP, lifting Linear, positional Linear); everything else is "backbone". Prefixes, so the
+# fine pass's `colour_mlp_fine` and `lift_proj_fine` are included.
 HEAD_MODULE_PREFIXES = ("colour_mlp", "lift_proj", "pos_proj")
 
 
@@ -94,7 +95,7 @@ def encoder_input(*, images: jax.Array, cam_to_world: jax.Array,
 
 def point_embedding_input(*, points: jax.Array, directions: jax.Array,
                           num_freqs: int) -> jax.Array:
-  """[PE(xyz), PE(unit ray direction)] per sample (SPEC §1.3): points [B, R, S, 3],
+  """[PE(xyz), PE(unit ray direction)] per sample (docs/method.md §1.3): points [B, R, S, 3],
   directions [B, R, 3] → [B, R, S, 12·num_freqs] (120 for 10 frequencies)."""
   pe_points = geometry.positional_encoding(points, num_freqs)  # [B, R, S, 6F]
   pe_dirs = geometry.positional_encoding(directions, num_freqs)[..., None, :]  # [B, R, 1, 6F]
@@ -130,7 +131,7 @@ class SlotLifter(nn.Module):
   locality_box: float = 0.64
   remat_scan: bool = False
   mask_shared_across_batch: bool = True
-  # Ablations (SPEC §5); the defaults are the paper's method.
+  # Ablations (docs/method.md §5); the defaults are the paper's method.
   feature_lifting: bool = True  # False: F_p = E_p only
   density_mode: str = "slot"  # "slot" | "mlp" (decoder.SlotDecoder)
   # Rendering (§1.5).
@@ -196,7 +197,7 @@ class SlotLifter(nn.Module):
     (`render_at_depths`)."""
     points = geometry.points_along_rays(origins=ray_origins, directions=ray_directions,
                                         z=z)  # [B, R, S, 3]
-    f_lift = None  # "without feature lifting" (SPEC §5): the views reach points via slots only
+    f_lift = None  # "without feature lifting" (docs/method.md §5): views reach points via slots
     if self.feature_lifting:
       lifted = lifting.project_and_gather(
           points=points, cam_to_world=source_cam_to_world, intrinsics=source_intrinsics,
@@ -235,7 +236,7 @@ class SlotLifter(nn.Module):
     """Renders rays [B, R, 3] (unit directions) of the scenes in `encoded`.
 
     keep_ratio: (traced) probability that a ray keeps its lifted features; used only when `train`.
-    locality: (traced) bool switching the locality constraint (SPEC §1.4).
+    locality: (traced) bool switching the locality constraint (docs/method.md §1.4).
     """
     b, r = ray_origins.shape[:2]
     sources = dict(source_images=source_images, source_cam_to_world=source_cam_to_world,

@@ -1,7 +1,8 @@
-"""Volume rendering of densities, colours and slot weights along rays (SPEC §1.5).
+"""Volume rendering of densities, colours and slot weights along rays (docs/method.md §1.5).
 
-Vocabulary (SPEC.md): S samples per ray, K real slots (K+1 with the empty slot at index 0), C colour
-channels; `...` is any leading batch shape (e.g. [B, R]). Pure functions, keyword-only arguments.
+Vocabulary (docs/method.md §0): S samples per ray, K real slots (K+1 with the empty slot at index
+0), C colour channels; `...` is any leading batch shape (e.g. [B, R]). Pure functions, keyword-only
+arguments.
 
   δ_i = z_{i+1} − z_i (last δ = 0),   α_i = 1 − exp(−σ_i·δ_i·scale),
   T_i = Π_{j<i} (1 − α_j + 1e-10),   w_i = α_i·T_i,
@@ -37,9 +38,10 @@ def _optical_depth(*, density: jax.Array, z: jax.Array, density_scale: float,
                    last_delta: Optional[jax.Array] = None) -> jax.Array:
   """σ_i·δ_i·scale with δ_i = z_{i+1} − z_i: [..., S] -> [..., S].
 
-  The last δ is 0 (SPEC §1.5) unless `last_delta` [...] gives it: a window of a longer sample grid
-  (slotlifter_jax.adaptive) ends at a sample whose grid successor it does not hold, and its last
-  sample must keep the δ it has in the whole grid for the window to composite like the grid.
+  The last δ is 0 (docs/method.md §1.5) unless `last_delta` [...] gives it: a window of a longer
+  sample grid (slotlifter_jax.adaptive) ends at a sample whose grid successor it does not hold, and
+  its last sample must keep the δ it has in the whole grid for the window to composite like the
+  grid.
   """
   if last_delta is None:
     last = jnp.zeros_like(z[..., :1])
@@ -63,7 +65,7 @@ def volume_render(*, density: jax.Array, z: jax.Array, colour: jax.Array,
                   slot_weights: Optional[jax.Array], far,
                   density_scale: float = 25.0,
                   last_delta: Optional[jax.Array] = None) -> RenderResult:
-  """Composites samples along each ray (SPEC §1.5).
+  """Composites samples along each ray (docs/method.md §1.5).
 
   Args:
     density: [..., S] σ ≥ 0.

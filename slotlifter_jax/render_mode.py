@@ -1,7 +1,7 @@
 """`--mode=render`: pictures of chosen scenes of a trained run — a panel per scene and an orbit GIF.
 
-Vocabulary (SPEC): B scenes, R rays, S samples per ray, K slots (K+1 with the empty slot at index
-0), H×W image size, F orbit frames.
+Vocabulary (docs/method.md §0): B scenes, R rays, S samples per ray, K slots (K+1 with the empty
+slot at index 0), H×W image size, F orbit frames.
 
 DIR/render/<split>/scene_XXXX_panel.png (XXXX = the scene's index in the split) has one row per
 view, columns
@@ -9,9 +9,9 @@ view, columns
 (the K real slots, the empty slot excluded; s0 is the background slot when the locality constraint
 was on). The overlay blends the slot colours (vis.PALETTE mixed by the soft weights) over the
 rendering; "sk" is what slot k renders alone: the volume rendering with the density of every
-other slot zeroed (σ_k = exp(s_σ)·W_k·ReLU(A_k), SPEC §1.4, whose sum over k is
-the model's σ) and each sample's colour unchanged. No background colour is added (SPEC §1.5), so
-what a slot does not hold is black.
+other slot zeroed (σ_k = exp(s_σ)·W_k·ReLU(A_k), docs/method.md §1.4, whose sum over k is
+the model's σ) and each sample's colour unchanged. No background colour is added
+(docs/method.md §1.5), so what a slot does not hold is black.
 
 DIR/render/<split>/scene_XXXX_orbit.gif shows rendering | segmentation side by side from F cameras
 circling the world z axis at the source camera's height and horizontal radius, looking at the
@@ -111,7 +111,7 @@ def slot_densities(*, logits: jax.Array, log_scale: jax.Array) -> jax.Array:
   """Each slot's share of the slot-based density: logits [..., K+1] → σ_k [..., K].
 
   σ_k = exp(s_σ)·W_k·ReLU(A_k), computed by `decoder.slot_density` with W masked to slot k, so
-  Σ_k σ_k is exactly the model's σ (SPEC §1.4).
+  Σ_k σ_k is exactly the model's σ (docs/method.md §1.4).
   """
   weights = decoder_lib.point_slot_weights(logits)  # [..., K+1]
   only = jnp.eye(logits.shape[-1], dtype=weights.dtype)[1:]  # [K, K+1]: slot k alone

@@ -105,8 +105,8 @@ class SceneRenderer:
 
   def render(self, params, scene: Scene, view_indices, *, source_indices=None,
              locality: bool = False) -> RenderedViews:
-    """`locality`: apply the locality constraint (SPEC §1.4), as training does before its switch-off
-    step, so a validation picture shows the function that is being trained."""
+    """`locality`: apply the locality constraint (docs/method.md §1.4), as training does before its
+    switch-off step, so a validation picture shows the function that is being trained."""
     sources = self.sources(scene, source_indices)
     encoded = self._encode(params, sources)
     height, width = scene.image_size

@@ -2,7 +2,8 @@
 
 XLA:CPU allocates one temp buffer per executed step (hundreds of MB to GB). glibc returns such
 blocks to the OS with munmap, so every step page-faults the whole buffer back in; a retaining
-allocator (jemalloc, tcmalloc) halves the paper-sized step on a 2-core CPU (../shared/PERF_NOTES.md).
+allocator (jemalloc, tcmalloc) avoids that, the largest single speed-up of the paper-sized step on
+a 2-core CPU (docs/performance.md §1).
 The allocator can only be swapped at exec time, so `main` and the benchmark re-execute themselves
 once with LD_PRELOAD set. Nothing here changes results, only speed and memory.
 
@@ -33,8 +34,8 @@ _LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/li
 # background threads would only compete for the two cores.
 JEMALLOC_CONF = "dirty_decay_ms:-1,muzzy_decay_ms:-1,background_thread:false"
 
-# The default XLA:CPU scheduler overlaps independent ops at the cost of ~25 % more temp memory on
-# the paper-sized step, for no measured speed (PERF_NOTES).
+# The default XLA:CPU scheduler overlaps independent ops at the cost of more temp memory on the
+# paper-sized step, for no measured speed (docs/performance.md §2).
 XLA_CPU_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false",)
 
 

@@ -1,4 +1,4 @@
-"""Every schedule of SPEC §2 as a pure function of the step `t` (a traced int or a Python int).
+"""Every schedule of docs/method.md §2 as a pure function of the step `t` (traced or Python int).
 
 Keeping them pure means the jitted train step computes them from `state.step`, a resumed run
 continues them exactly, and the training metrics can report them.
@@ -29,7 +29,7 @@ def _cosine_to_zero(t, steps: int):
 
 
 def keep_ratio(t, *, mask_max: float, anneal_steps: int):
-  """Fraction of rays that keep their lifted features (SPEC §1.3).
+  """Fraction of rays that keep their lifted features (docs/method.md §1.3).
 
   keep(t) = 1 − mask_max·(cos(π t/T)+1)/2 for t < T, else 1: with mask_max = 0.99 the masking ratio
   anneals 0.99 → 0, i.e. 1 − (0.495 cos(π t/30 000) + 0.495).
@@ -38,12 +38,12 @@ def keep_ratio(t, *, mask_max: float, anneal_steps: int):
 
 
 def slot_noise_sigma(t, *, anneal_steps: int):
-  """σ of the slot initialisation noise (SPEC §1.2), cosine-annealed 1 → 0."""
+  """σ of the slot initialisation noise (docs/method.md §1.2), cosine-annealed 1 → 0."""
   return _cosine_to_zero(t, anneal_steps)
 
 
 def locality_on(t, *, steps: int):
-  """The locality constraint (SPEC §1.4) holds for the first `steps` steps."""
+  """The locality constraint (docs/method.md §1.4) holds for the first `steps` steps."""
   return jnp.asarray(t) < steps
 
 

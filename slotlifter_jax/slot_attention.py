@@ -1,4 +1,4 @@
-"""Slot attention with BO-QSA initialisation and the bi-level gradient (SPEC §1.2).
+"""Slot attention with BO-QSA initialisation and the bi-level gradient (docs/method.md §1.2).
 
 Shapes: B scenes, N = V·h·w input feature vectors per scene, D feature width, K slots,
 Ds slot width (256).
@@ -175,7 +175,9 @@ class SlotAttention(nn.Module):
     return mu + z * noise_sigma * jax.lax.stop_gradient(mu)
 
   def keys_values(self, inputs: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """[B, N, D] features → keys and values [B, N, Ds] (no positional embedding, SPEC §1.2)."""
+    """[B, N, D] features → keys and values [B, N, Ds].
+
+    No positional embedding is added (docs/method.md §1.2)."""
     x = self.norm_inputs(inputs)
     return self.project_k(x), self.project_v(x)
 

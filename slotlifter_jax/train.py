@@ -272,7 +272,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
           state, metrics = train_step(state, batch)
           in_row_max = metrics["nonfinite_in_row"]
         # Waiting for the new state before dispatching the next step keeps XLA from allocating
-        # the next step's temp buffer while the last one is alive (doubled RSS otherwise).
+        # the next step's temp buffer while the last one is alive, which doubles RSS
+        # (docs/performance.md §1).
         jax.block_until_ready(state.step)
         done += n
         bar.update(n)

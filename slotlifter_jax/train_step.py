@@ -1,4 +1,4 @@
-"""The train state, the optimiser of SPEC §2 and the jit-compiled train step.
+"""The train state, the optimiser of docs/method.md §2 and the jit-compiled train step.
 
 One step = forward on a batch of B scenes × R rays, MSE in [0, 1] colour units (mean of coarse and
 fine when both exist), gradients, global-norm clipping, Lion with two schedules. The step reads
@@ -29,7 +29,7 @@ RNG_STREAMS = ("dropout", "noise", "sample", "mask")
 RAY_KEYS = ("ray_origins", "ray_directions", "target_rgb")
 
 # Parameters of these submodules follow the head schedule (no warm-up); everything else follows the
-# backbone schedule (SPEC §2).
+# backbone schedule (docs/method.md §2).
 HEAD_MODULE_PREFIXES = model_lib.HEAD_MODULE_PREFIXES
 
 

@@ -1,4 +1,4 @@
-"""Small data-set folders in the real on-disk formats (SPEC §3), written with PIL / NumPy directly.
+"""Small data-set folders in the real on-disk formats (docs/method.md §3), written with PIL / NumPy.
 
 Each writer returns the ground truth it wrote (uint8 pixels, world-unit poses, K, label maps), so a
 test can compare a reader's output with values that never went through the code under test.

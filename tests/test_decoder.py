@@ -1,4 +1,4 @@
-"""Tests for the allocation transformer, point-slot mapping, slot density, colour MLP (SPEC §1.4)."""
+"""Allocation transformer, point-slot mapping, slot density, colour MLP (docs/method.md §1.4)."""
 
 import chex
 import flax
@@ -234,7 +234,7 @@ def test_colour_mlp():
 
 
 # ---------------------------------------------------------------------------------------------
-# The "without slot-based density" ablation (SPEC §5).
+# The "without slot-based density" ablation (docs/method.md §5).
 
 
 def test_mlp_density_matches_numpy_and_stays_finite():

@@ -1,4 +1,4 @@
-"""Tests for the ResUNet image encoder (SPEC §1.1) against NumPy references."""
+"""Tests for the ResUNet image encoder (docs/method.md §1.1) against NumPy references."""
 
 import chex
 import jax

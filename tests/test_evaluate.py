@@ -1,5 +1,5 @@
-"""Evaluation and pictures (SPEC §4, §8): per-scene aggregation against sklearn/NumPy references,
-the eval and render modes end to end on a smoke run, and their refusals.
+"""Evaluation and pictures (docs/method.md §4, §8): per-scene aggregation against sklearn/NumPy
+references, the eval and render modes end to end on a smoke run, and their refusals.
 
 The metric functions themselves (ARI, SSIM, LPIPS, mBO, …) are tested in test_metrics.py; here the
 question is whether the right views reach them and the results are aggregated and written right.
@@ -413,7 +413,7 @@ def test_validator_flags_a_constructed_collapsed_model_and_not_a_healthy_split(r
   healthy = evaluate.collapse_statistics(segmentation=np.concatenate(seg), rendered=np.concatenate(rgb),
                                          target=np.concatenate(rgb), foreground=np.concatenate(fg))
   assert healthy["collapsed"] == 0.0 and healthy["probe_active_slots"] >= 2
-  # All foreground in one slot (the other collapse of SPEC §6) is flagged by the same function.
+  # All foreground in one slot (another collapse of docs/method.md §6): the same function flags it.
   one = np.zeros_like(np.concatenate(seg))
   one[..., 0] = 1.0
   merged = evaluate.collapse_statistics(segmentation=one, rendered=np.concatenate(rgb),

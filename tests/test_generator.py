@@ -1,4 +1,4 @@
-"""Tests of the embedded data-set generator (SPEC §3.5) against independent NumPy references.
+"""Tests of the embedded data-set generator (docs/method.md §3.5) against independent NumPy code.
 
 The references here never call the ray caster: primitives are described by exact signed distance
 functions written from dataset.json's `parts`, cameras are read back from the written text files,

@@ -321,7 +321,7 @@ def test_ssim_pools_large_images_like_piq():
 
 
 def test_ssim_equals_skimage_at_protocol_resolution():
-  # At 128×128 (f = 1) the protocol SSIM is skimage's Gaussian SSIM with the SPEC's constants.
+  # At 128×128 (f = 1) the protocol SSIM is skimage's Gaussian SSIM, constants of docs/method.md §4.
   rng = np.random.default_rng(12)
   pred, target = _smooth_pair(rng, 128, 128)
   want = skimage.metrics.structural_similarity(

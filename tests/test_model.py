@@ -1,4 +1,4 @@
-"""Tests for the composed SlotLifter model (SPEC §1): shapes under jit, wiring, parameter counts."""
+"""Tests for the composed SlotLifter model (docs/method.md §1): shapes under jit, wiring, counts."""
 
 import functools
 
@@ -308,7 +308,7 @@ def test_build_model_and_head_prefixes():
 
 
 # ---------------------------------------------------------------------------------------------
-# Ablation switches (SPEC §5). Their defaults are the paper's method.
+# Ablation switches (docs/method.md §5). Their defaults are the paper's method.
 
 
 def _config_params(config, size):

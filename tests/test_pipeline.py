@@ -1,5 +1,5 @@
-"""The batch pipeline (SPEC §2): shapes, determinism from (seed, step), ray geometry, the 75 % rule,
-nearest-source selection and the prefetch thread."""
+"""The batch pipeline (docs/method.md §2): shapes, determinism from (seed, step), ray geometry, the
+75 % rule, nearest-source selection and the prefetch thread."""
 
 import threading
 import time

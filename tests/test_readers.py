@@ -1,4 +1,4 @@
-"""Readers on small fixtures written in the real formats (SPEC §3), against the values written."""
+"""Readers on small fixtures in the real formats (docs/method.md §3), against the values written."""
 
 import logging
 import os
@@ -58,7 +58,7 @@ def test_uorf_views_poses_and_default_intrinsics(tmp_path):
     np.testing.assert_allclose(scene.cam_to_world,
                                np.stack([expected_pose(truth["pose"][s]) for s in stems]),
                                atol=1e-6)
-    # uORF camera at 7×7 (SPEC §3.1): fx = 1.09375·W, fy = 1.458333·H, centre of the image.
+    # uORF camera at 7×7 (docs/method.md §3.1): fx = 1.09375·W, fy = 1.458333·H, image centre.
     k = np.array([[1.09375 * 7, 0, 3.0], [0, 1.4583333 * 7, 3.0], [0, 0, 1]])
     np.testing.assert_allclose(scene.intrinsics, np.broadcast_to(k, (4, 3, 3)), rtol=1e-6)
     assert scene.source_indices == (0,)

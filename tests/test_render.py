@@ -14,7 +14,7 @@ FAR = 3.5
 
 
 def _numpy_render(density, z, colour, slot_weights, far, scale):
-  """SPEC §1.5 written ray by ray, sample by sample, in float64."""
+  """docs/method.md §1.5 written ray by ray, sample by sample, in float64."""
   lead = density.shape[:-1]
   out_c = np.zeros(lead + (colour.shape[-1],))
   out_d, out_o = np.zeros(lead), np.zeros(lead)

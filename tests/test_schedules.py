@@ -1,4 +1,4 @@
-"""Schedules against the closed forms written out in SPEC §1–2 (independent NumPy formulas)."""
+"""Schedules against the closed forms of docs/method.md §1–2 (independent NumPy formulas)."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Tests for BO-QSA slot attention (SPEC §1.2)."""
+"""Tests for BO-QSA slot attention (docs/method.md §1.2)."""
 
 import chex
 import flax.linen as nn

@@ -2,9 +2,9 @@
 matrix decomposition, nearest-view selection and pixel rays.
 
 Vocabulary: N views of a scene, R rays, H×W stored and h×w delivered image sizes. Conventions are
-the model's (slotlifter_jax/__init__.py, SPEC §3.1): `cam_to_world` is a 4×4 OpenCV pose (x right, y
-down, z forward), `intrinsics` a 3×3 pixel-unit K with pixel centres at integer coordinates, so a
-pixel (u, v) = (column, row) back-projects to the camera ray K⁻¹[u, v, 1].
+the model's (slotlifter_jax/__init__.py, docs/method.md §3.1): `cam_to_world` is a 4×4 OpenCV pose
+(x right, y down, z forward), `intrinsics` a 3×3 pixel-unit K with pixel centres at integer
+coordinates, so a pixel (u, v) = (column, row) back-projects to the camera ray K⁻¹[u, v, 1].
 
 The model computes its own rays in JAX (`slotlifter_jax.geometry`); this NumPy twin exists so the
 input pipeline can build batches on the host thread without touching the accelerator.
@@ -26,7 +26,7 @@ from slotlifter_jax.data.types import DataError
 ROTATION_TOLERANCE = 1e-3
 # The bottom row of a 4×4 pose must be (0, 0, 0, 1) to within this.
 BOTTOM_ROW_TOLERANCE = 1e-6
-# uORF renders are a 4:3 camera (350 px focal on 320×240) squeezed to a square image (SPEC §3.1).
+# uORF renders: a 4:3 camera (350 px focal on 320×240) squeezed to a square (docs/method.md §3.1).
 UORF_FOCAL_RATIO = (350.0 / 320.0, 350.0 / 240.0)  # (fx / W, fy / H)
 # The official SlotLifter code builds uORF/uOCF intrinsics on a 256-pixel frustum and then scales
 # them by size/256 without the half-pixel shift; `official_principal_point` reproduces that.
@@ -119,7 +119,7 @@ def intrinsics_from_normalised(k_norm: np.ndarray, *, height: int, width: int,
                                official_principal_point: bool = False) -> np.ndarray:
   """Pixel K at H×W from a normalised K (f'x = fx/W, f'y = fy/H, c'x = 2cx/W − 1, c'y = 2cy/H − 1).
 
-  This inverts the contract our generator writes (SPEC §3.3). `official_principal_point` instead
+  This inverts our generator's contract (docs/method.md §3.3). `official_principal_point` instead
   applies the official reader, cx = ((c'x + 1)·256 − 1)/2 · W/256, which sits W/512 px lower.
   """
   fx, fy = k_norm[0, 0] * width, k_norm[1, 1] * height
@@ -186,7 +186,7 @@ def rigid_inverse(pose: np.ndarray) -> np.ndarray:
 def view_distances(*, cam_to_world: np.ndarray, target_idx: int) -> np.ndarray:
   """[N] 0.5·(rotation angle in rad) + 0.5·(camera-centre distance) from view `target_idx`.
 
-  The "mix" distance of IBRNet / the official SlotLifter source selection (SPEC §3.4).
+  The "mix" distance of IBRNet / the official SlotLifter source selection (docs/method.md §3.4).
   """
   rotations = cam_to_world[:, :3, :3].astype(np.float64)  # [N, 3, 3]
   relative = np.einsum("ji,njk->nik", rotations[target_idx], rotations)  # R_tᵀ R_n: [N, 3, 3]

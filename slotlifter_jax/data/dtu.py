@@ -1,4 +1,4 @@
-"""Reader for DTU in pixelNeRF's rs_dtu_4 layout (SPEC §3.4).
+"""Reader for DTU in pixelNeRF's rs_dtu_4 layout (docs/method.md §3.4).
 
 Vocabulary: N views of a scan (49 in rs_dtu_4), H×W = 300×400 stored, h×w delivered, V sources.
 
@@ -32,7 +32,7 @@ from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
 
 TRAIN_LIST = "new_train.lst"
-TEST_LIST = "new_val.lst"  # pixelNeRF's held-out scans: our test split (SPEC §3.4, §4)
+TEST_LIST = "new_val.lst"  # pixelNeRF's held-out scans: our test split (docs/method.md §3.4, §4)
 EVAL_TARGET_STRIDE = 8  # evaluation targets: views 0, 8, 16, …
 CAMERAS_FILE = "cameras.npz"
 IMAGE_DIR = "image"

@@ -1,4 +1,4 @@
-"""Command line for the embedded default data set (SPEC §3.5).
+"""Command line for the embedded default data set (docs/method.md §3.5).
 
   python -m slotlifter_jax.data.generate --family=clevr --out=DIR --num_train=1000 --num_val=100 \
       --num_test=100 --views=4 --image_size=128 --seed=0

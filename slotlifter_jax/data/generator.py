@@ -1,6 +1,6 @@
-"""The embedded default data set: procedural multi-view scenes, analytic ray caster (SPEC §3.5).
+"""The embedded default data set: procedural scenes, analytic ray caster (docs/method.md §3.5).
 
-Vocabulary (SPEC.md, plus the generator's own letters): N views per scene, H×W image size,
+Vocabulary (docs/method.md §0, plus the generator's own letters): N views per scene, H×W image size,
 A anti-aliasing samples per pixel (a √A×√A grid), R rays (N·H·W·A for a colour pass, N·H·W for the
 centre pass), P primitives of a scene (padded to the family's maximum), G = P + 5 surfaces (the
 primitives, then the floor and the four room walls), L = 3 lights.
@@ -16,9 +16,9 @@ views of a scene at once, with shadow rays to each light, one mirror bounce for 
 procedural textures for the room family. Colour comes from A supersamples per pixel; the instance
 mask and the depth come from one extra ray through each pixel centre, so they are exact (not derived
 from colour). World units are the uORF ones (camera radius ≈ 12.4); readers apply the 1/7 scene
-scale (SPEC §3.1).
+scale (docs/method.md §3.1).
 
-This module also writes a data set in the uORF folder format (SPEC §3.2/§3.3, see
+This module also writes a data set in the uORF folder format (docs/method.md §3.2/§3.3, see
 `generate_dataset`): per view `NNNNN_scSSSS_azAA.png`, `_RT.txt` (OpenCV cam2world, world units),
 `_intrinsics.txt` (normalised K), `_depth.npy` (camera-z depth, world units), `_mask.png` (label l
 drawn in grey `LABEL_GREY_STEP·l`), and per split a `dataset.json`.
@@ -45,11 +45,11 @@ from PIL import Image
 
 GENERATOR_VERSION = 1
 FAMILIES = ("clevr", "room")
-SUBSETS = {"clevr": "clevr_567", "room": "room_chair"}  # uORF folder prefixes (SPEC §3.2)
+SUBSETS = {"clevr": "clevr_567", "room": "room_chair"}  # uORF folder prefixes (docs/method.md §3.2)
 SPLITS = ("train", "val", "test")
-SCENE_SCALE = 1.0 / 7.0  # uORF "nss_scale": readers multiply world units by this (SPEC §3.1)
+SCENE_SCALE = 1.0 / 7.0  # uORF "nss_scale": readers scale world units by it (docs/method.md §3.1)
 
-# ---- cameras (SPEC §3.1, §3.5) ----
+# ---- cameras (docs/method.md §3.1, §3.5) ----
 CAMERA_RADIUS = 12.4
 CAMERA_RADIUS_JITTER = 0.2
 CAMERA_ELEVATION_DEG = 40.0
@@ -66,7 +66,7 @@ MAX_OBJECTS = {"clevr": 7, "room": 4}
 # An object must cover at least this many pixels of the source view at 128×128 (scaled by area).
 MIN_VISIBLE_PIXELS_128 = 20
 
-# ---- CLEVR statistics (SPEC §3.5) ----
+# ---- CLEVR statistics (docs/method.md §3.5) ----
 CLEVR_COLOURS = {
     "gray": (87, 87, 87), "red": (173, 35, 35), "blue": (42, 75, 215), "green": (29, 105, 20),
     "brown": (129, 74, 25), "purple": (129, 38, 192), "cyan": (41, 208, 208),
@@ -249,7 +249,7 @@ def uorf_intrinsics(image_size: int) -> np.ndarray:
 
 
 def normalised_intrinsics(k: np.ndarray, image_size: int) -> np.ndarray:
-  """uOCF `_intrinsics.txt` convention (SPEC §3.3): f' = f/W, c' = 2c/W − 1."""
+  """uOCF `_intrinsics.txt` convention (docs/method.md §3.3): f' = f/W, c' = 2c/W − 1."""
   h = w = image_size
   return np.array([[k[0, 0] / w, 0.0, 2.0 * k[0, 2] / w - 1.0],
                    [0.0, k[1, 1] / h, 2.0 * k[1, 2] / h - 1.0],
@@ -357,7 +357,7 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
 
 def sample_clevr_layout(rng: np.random.Generator, *, min_objects: int = 0, max_objects: int = 0,
                         object_scale: float = 1.0) -> SceneSpec:
-  """5–7 CLEVR objects on the ground plane, no interpenetration (SPEC §3.5).
+  """5–7 CLEVR objects on the ground plane, no interpenetration (docs/method.md §3.5).
 
   `min_objects`, `max_objects` (0: 5 and 7) and `object_scale` (multiplies every size) give easier
   sets; with the defaults the random draws are exactly those of the default set.
@@ -456,7 +456,7 @@ def _chair(rng: np.random.Generator, label: int, xy: np.ndarray, yaw: float,
 
 def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
                        max_objects: int = 0) -> SceneSpec:
-  """1–4 primitive chairs on a textured floor inside four walls (SPEC §3.5).
+  """1–4 primitive chairs on a textured floor inside four walls (docs/method.md §3.5).
 
   `min_objects`, `max_objects` (0: 1 and 4) narrow the chair count; the defaults draw as before.
   """
@@ -1074,7 +1074,7 @@ def _stage_rays(cam_to_world, intrinsics, *, image_size: int, supersample: int):
 
 @functools.partial(jax.jit, static_argnames=("shape",))
 def _stage_resolve(radiance: Vec, *, shape: tuple) -> jax.Array:
-  # Average the A supersamples in linear light, then gamma-encode (anti-aliasing, SPEC §3.5).
+  # Anti-aliasing (docs/method.md §3.5): average the A supersamples in linear light, gamma-encode.
   rgb = [jnp.mean(jnp.clip(r, 0.0, 1.0).reshape(shape), axis=3) ** (1.0 / GAMMA)
          for r in radiance]  # 3 × [N, H, W]
   return jnp.stack(rgb, axis=-1)
@@ -1177,7 +1177,7 @@ def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_
 
 
 # =============================================================================================
-# Writing a data set (uORF folder format, SPEC §3.2 / §3.3)
+# Writing a data set (uORF folder format, docs/method.md §3.2 / §3.3)
 # =============================================================================================
 
 PNG_COMPRESS_LEVEL = 6  # fixed so files are byte-identical between runs

@@ -1,4 +1,5 @@
-"""The training batch pipeline (SPEC §2): fixed-shape NumPy batches, reproducible from (seed, step).
+"""The training batch pipeline (docs/method.md §2): fixed-shape NumPy batches, reproducible from
+(seed, step).
 
 Vocabulary: B scenes (or target views) per batch, V source views, R rays per scene, H×W image size.
 

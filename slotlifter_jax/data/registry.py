@@ -1,4 +1,4 @@
-"""`load_split(config.data, split)`: the scenes of a split, whatever the data set (SPEC §3).
+"""`load_split(config.data, split)`: the scenes of a split, any data set (docs/method.md §3).
 
 Dispatches on `data.format`:
   'uorf' / 'uocf'  `<root>/<subset>_<split>/` (or `<root>/<subset>/<subset>_<split>/`, the official
@@ -6,10 +6,10 @@ Dispatches on `data.format`:
   'dtu'            pixelNeRF rs_dtu_4: train = new_train.lst, test = new_val.lst (dtu.py)
   'scannet'        training scenes and the 8 NerfingMVS test scenes (scannet.py)
 
-Validation never looks at the test split (SPEC §4): when a set has no validation split on disk, the
-last `data.num_val_scenes` training scenes (in name order) are held out as 'val' and removed from
-'train'. DTU and ScanNet evaluation splits come back as one fixed-source Scene per target
-(`pipeline.per_target_scenes`), their training split as pooled-source scenes.
+Validation never looks at the test split (docs/method.md §4): when a set has no validation split on
+disk, the last `data.num_val_scenes` training scenes (in name order) are held out as 'val' and
+removed from 'train'. DTU and ScanNet evaluation splits come back as one fixed-source Scene per
+target (`pipeline.per_target_scenes`), their training split as pooled-source scenes.
 
 Nothing is cached or written: not into the data folders, nor anywhere else.
 """

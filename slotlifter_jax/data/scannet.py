@@ -1,4 +1,4 @@
-"""Reader for ScanNet as SlotLifter uses it (SPEC §3.4).
+"""Reader for ScanNet as SlotLifter uses it (docs/method.md §3.4).
 
 Vocabulary: N frames of a scene, H×W = 480×640 stored, h×w delivered, V sources.
 

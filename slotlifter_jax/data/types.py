@@ -1,8 +1,8 @@
 """The in-memory scene structure every reader returns.
 
-One `Scene` holds all N views of a scene in the *normalised scene frame* (SPEC §3.1): positions
-already multiplied by the data set's scene scale (1/7 for the uORF-style sets), cameras OpenCV
-cam2world, intrinsics in pixels of the stored image size.
+One `Scene` holds all N views of a scene in the *normalised scene frame* (docs/method.md §3.1):
+positions already multiplied by the data set's scene scale (1/7 for the uORF-style sets), cameras
+OpenCV cam2world, intrinsics in pixels of the stored image size.
 
 Two kinds of scene share the structure:
 - fixed sources (uORF/uOCF sets and our generated sets): `source_indices` are the model's input

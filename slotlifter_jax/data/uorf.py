@@ -1,4 +1,6 @@
-"""Readers for the uORF (SPEC §3.2) and uOCF (§3.3) folder formats and our generated folders (§3.5).
+"""Readers for the uORF and uOCF folder formats and for our generated folders.
+
+Formats: docs/method.md §3.2 (uORF), §3.3 (uOCF) and §3.5 (generated).
 
 Vocabulary: N views per scene, H×W the stored and h×w the delivered image size.
 
@@ -51,7 +53,7 @@ VIEW_FILE_KINDS = {
     "_intrinsics.txt": "intrinsics",
     "_depth.npy": "depth",
 }
-# Written by the uORF/uOCF scene-editing tools; they are not views (SPEC §3.2).
+# Written by the uORF/uOCF scene-editing tools; they are not views (docs/method.md §3.2).
 NOT_VIEW_SUFFIXES = frozenset(f"_{s}.png" for s in (
     "mask_for_moving", "moved", "mask_for_bg", "mask_for_providing_bg", "changed", "providing_bg",
     "depth"))
