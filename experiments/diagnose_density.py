@@ -19,8 +19,8 @@ from slotlifter_jax import evaluate
 from slotlifter_jax import geometry
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import render_views
-from slotlifter_jax import train
 from slotlifter_jax import train_step as step_lib
+from slotlifter_jax.data import embedded
 from slotlifter_jax.data import registry
 
 
@@ -33,7 +33,7 @@ def load_config(arg: str):
 
 
 def main(config_arg: str, run_dir: str, scene_index: int = 0, split: str = "val") -> None:
-  config = train.resolve_data(load_config(config_arg))
+  config = embedded.resolve_data(load_config(config_arg))
   scene = registry.load_split(config.data, split, max_scenes=scene_index + 1)[scene_index]
   model = model_lib.build_model(config)
   key = jax.random.key(0, impl=config.train.prng_impl)

@@ -19,7 +19,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
 from experiments import study_common  # noqa: E402
-from slotlifter_jax import train  # noqa: E402
+from slotlifter_jax.data import embedded  # noqa: E402
 from slotlifter_jax.data import pipeline  # noqa: E402
 from slotlifter_jax.data import registry  # noqa: E402
 
@@ -30,7 +30,7 @@ def main():
   parser.add_argument("--scenes", type=int, default=20)
   parser.add_argument("--batches", type=int, default=50)
   args = parser.parse_args()
-  config = train.resolve_data(study_common.load_config(args.config))
+  config = embedded.resolve_data(study_common.load_config(args.config))
   scenes = registry.load_split(config.data, "val", max_scenes=args.scenes)
   print(f"{len(scenes)} val scenes of {config.data.root}: foreground share of pixels "
         f"{np.mean([(s.masks > 0).mean() for s in scenes]):.3f}")

@@ -363,9 +363,10 @@ def execute(run: Run, *, root: str = DEFAULT_ROOT, study: str = "", eval_split: 
 
   from slotlifter_jax import evaluate  # JAX only from here on
   from slotlifter_jax import train
+  from slotlifter_jax.data import embedded
   os.makedirs(run_dir, exist_ok=True)
   # Data generation is shared by every run of a data set and happens once: keep it off the clock.
-  config = train.resolve_data(config)
+  config = embedded.resolve_data(config)
   start = latest_step(run_dir)
   if start < run.num_steps:
     t0 = time.perf_counter()

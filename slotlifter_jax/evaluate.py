@@ -46,6 +46,7 @@ from slotlifter_jax import render_views
 from slotlifter_jax import schedules
 from slotlifter_jax import train_step as step_lib
 from slotlifter_jax import vis
+from slotlifter_jax.data import embedded
 from slotlifter_jax.data import pipeline
 from slotlifter_jax.data import registry
 from slotlifter_jax.data.types import DataError
@@ -331,7 +332,6 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
       the fields / parameters.
     DataError: the split is missing or empty on disk.
   """
-  from slotlifter_jax import train  # train imports this module for its Validator
   if split not in registry.SPLITS:
     raise EvalSetupError(f"--split={split!r}: must be one of {', '.join(registry.SPLITS)}")
   saved = ckpt_lib.load_saved_config(workdir)
@@ -340,7 +340,7 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
                             f"training run directory (train it first with --mode=train)")
   ckpt_lib.check_compatible(config, saved, workdir)
   _warn_other_differences(config, saved)
-  config = train.resolve_data(config)
+  config = embedded.resolve_data(config)
   scenes = registry.load_split(config.data, split, max_scenes=max_scenes)
   # DTU/ScanNet training scenes pool their sources; evaluate them one target at a time, as the
   # readers already deliver the val and test splits.

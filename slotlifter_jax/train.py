@@ -34,14 +34,6 @@ class NonFiniteError(RuntimeError):
   """Too many non-finite steps in a row."""
 
 
-def resolve_data(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
-  """Fills data.root with the embedded default set (generated once) when the config leaves it empty."""
-  if not config.data.root:
-    with config.unlocked():
-      config.data.root = embedded.ensure_dataset(config.data, seed=config.data.get("seed", 0))
-  return config
-
-
 class _StopFlag:
   """Turns SIGINT/SIGTERM into a flag the loop checks, so it can checkpoint before leaving."""
 
@@ -195,7 +187,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     config.seed = int(saved["seed"])
     config.train.collapse_restarts = int(saved["train"].get("collapse_restarts", 0))
     logging.info("resuming the restarted attempt with seed %d", config.seed)
-  config = resolve_data(config)
+  config = embedded.resolve_data(config)
   train_scenes = registry.load_split(config.data, "train")
   val_scenes = registry.load_split(config.data, "val")
   logging.info("data: %d train / %d val scenes from %s", len(train_scenes), len(val_scenes),

@@ -27,6 +27,7 @@ from slotlifter_jax import render
 from slotlifter_jax import render_mode
 from slotlifter_jax import render_views
 from slotlifter_jax import train
+from slotlifter_jax.data import embedded
 from slotlifter_jax.data import registry
 from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
@@ -249,7 +250,7 @@ def test_eval_writes_metrics_and_refuses_to_overwrite(run_dir):
 
   with open(os.path.join(run_dir, "eval", "test", "per_scene.csv")) as f:
     rows = list(csv.DictReader(f))
-  scenes = registry.load_split(train.resolve_data(load_config()).data, "test")
+  scenes = registry.load_split(embedded.resolve_data(load_config()).data, "test")
   assert [r["scene"] for r in rows] == [s.name for s in scenes]
   for name in ranges:  # the JSON means are the means of the CSV rows
     assert report["metrics"][name]["mean"] == pytest.approx(

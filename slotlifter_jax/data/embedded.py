@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 
+import ml_collections
 from absl import logging
 
 SUBSETS = {"clevr": "clevr_567", "room": "room_chair"}
@@ -62,3 +63,15 @@ def ensure_dataset(data_config, *, seed: int = 0) -> str:
       num_test=d.num_test_scenes, views=d.views_per_scene, image_size=d.image_size, seed=seed,
       progress=True, **object_options(d))
   return root
+
+
+def resolve_data(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
+  """Fills data.root with the embedded default set (generated once) when the config leaves it empty.
+
+  Training, evaluation and the experiments all call this before loading a split; it lives with the
+  data rather than in train.py so that evaluating a run does not import the training loop.
+  """
+  if not config.data.root:
+    with config.unlocked():
+      config.data.root = ensure_dataset(config.data, seed=config.data.get("seed", 0))
+  return config

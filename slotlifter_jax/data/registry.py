@@ -129,7 +129,7 @@ def load_split(data_config, split: str, *, max_scenes: Optional[int] = None) -> 
   if fmt not in FORMATS:
     raise ValueError(f"load_split: data.format must be one of {FORMATS}, got {fmt!r}")
   if not data_config.root:
-    raise DataError("data.root is empty: point it at a data set, or let train.resolve_data "
+    raise DataError("data.root is empty: point it at a data set, or let embedded.resolve_data "
                     "generate the embedded set first")
   if not os.path.isdir(data_config.root):
     raise DataError(f"{data_config.root}: data.root does not exist (or is not a folder)")
