@@ -23,7 +23,7 @@ from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import train_step as step_lib
 from slotlifter_jax import emergence
-from slotlifter_jax import evaluate
+from slotlifter_jax import validation
 from slotlifter_jax.data import device_sampler
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import pipeline
@@ -237,7 +237,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
       return blocks[n](state, device_scenes)
   else:
     train_step = step_lib.make_train_step(model, config, key=jax.random.fold_in(key, 1), mesh=mesh)
-  validator = evaluate.Validator(model, config, val_scenes[:config.train.eval_scenes], workdir)
+  validator = validation.Validator(model, config, val_scenes[:config.train.eval_scenes], workdir)
   writer = MetricWriter(workdir)
 
   start = int(state.step)

@@ -27,6 +27,7 @@ from slotlifter_jax import render
 from slotlifter_jax import render_mode
 from slotlifter_jax import render_views
 from slotlifter_jax import train
+from slotlifter_jax import validation
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import registry
 from slotlifter_jax.data.types import DataError
@@ -395,7 +396,7 @@ def test_validator_flags_a_constructed_collapsed_model_and_not_a_healthy_split(r
     layer = params["allocation"][name]
     layer["kernel"] = jnp.zeros_like(layer["kernel"])
     layer["bias"] = jnp.ones_like(layer["bias"])
-  validator = evaluate.Validator(run.model, run.config, run.scenes, run_dir, num_pictures=0)
+  validator = validation.Validator(run.model, run.config, run.scenes, run_dir, num_pictures=0)
   # Past the locality switch-off: the constraint would hand every outside point to slot 1.
   collapsed = validator.run(params, run.config.train.locality_steps)
   assert collapsed["collapsed"] == 1.0 and collapsed["collapse_near_uniform"] == 1.0
@@ -411,12 +412,13 @@ def test_validator_flags_a_constructed_collapsed_model_and_not_a_healthy_split(r
     seg.append(np.eye(k, dtype=np.float32)[np.maximum(labels - 1, 0) % k])
     fg.append(labels > 0)
     rgb.append(scene.images[novel].reshape(len(novel), -1, 3))
-  healthy = evaluate.collapse_statistics(segmentation=np.concatenate(seg), rendered=np.concatenate(rgb),
-                                         target=np.concatenate(rgb), foreground=np.concatenate(fg))
+  healthy = validation.collapse_statistics(
+      segmentation=np.concatenate(seg), rendered=np.concatenate(rgb), target=np.concatenate(rgb),
+      foreground=np.concatenate(fg))
   assert healthy["collapsed"] == 0.0 and healthy["probe_active_slots"] >= 2
   # All foreground in one slot (another collapse of docs/method.md §6): the same function flags it.
   one = np.zeros_like(np.concatenate(seg))
   one[..., 0] = 1.0
-  merged = evaluate.collapse_statistics(segmentation=one, rendered=np.concatenate(rgb),
-                                        target=np.concatenate(rgb), foreground=np.concatenate(fg))
+  merged = validation.collapse_statistics(segmentation=one, rendered=np.concatenate(rgb),
+                                          target=np.concatenate(rgb), foreground=np.concatenate(fg))
   assert merged["collapsed"] == 1.0 and merged["collapse_dominant_slot"] == 1.0

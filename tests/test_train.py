@@ -15,11 +15,11 @@ import optax
 import pytest
 
 from slotlifter_jax import checkpoints as ckpt_lib
-from slotlifter_jax import evaluate
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import schedules
 from slotlifter_jax import train
 from slotlifter_jax import train_step as step_lib
+from slotlifter_jax import validation
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -241,14 +241,14 @@ def test_four_devices_match_one_device():
 def test_collapsed_run_is_kept_and_restarted_from_the_next_seed(tmp_path, monkeypatch):
   config = load_config()
   config.train.collapse_restarts = 1
-  real_run = evaluate.Validator.run
+  real_run = validation.Validator.run
   calls = {"n": 0}
   def run_flagging_the_first_attempt(self, params, step):
     result = real_run(self, params, step)
     calls["n"] += 1
     result["collapsed"] = 1.0 if calls["n"] == 1 else 0.0  # the first validation of seed 0
     return result
-  monkeypatch.setattr(evaluate.Validator, "run", run_flagging_the_first_attempt)
+  monkeypatch.setattr(validation.Validator, "run", run_flagging_the_first_attempt)
   workdir = str(tmp_path / "run")
   settled = train.collapse_settled_step(config.train)
   assert settled <= config.train.eval_every  # the first validation already counts

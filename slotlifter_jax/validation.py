@@ -1,0 +1,97 @@
+"""Validation during training (docs/method.md §4, §6): a few fixed validation scenes rendered,
+scored with evaluate.scene_metrics, checked for collapse and drawn into a PNG panel.
+
+The training loop imports this module; evaluation does not. Keeping the Validator out of
+evaluate.py lets the dependency run one way (train → validation → evaluate) instead of in a cycle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+
+import numpy as np
+
+from slotlifter_jax import collapse
+from slotlifter_jax import evaluate
+from slotlifter_jax import render_views
+from slotlifter_jax import schedules
+from slotlifter_jax import vis
+from slotlifter_jax.data.types import Scene
+
+
+def collapse_statistics(*, segmentation, rendered, target, foreground=None) -> dict[str, float]:
+  """Run-level collapse flag and its statistics for probe views (slotlifter_jax.collapse).
+
+  segmentation [n, N, K], rendered / target colours [n, N, 3], foreground [n, N] bool or None
+  (sets without masks: every pixel counts). Returns floats for the metric log: `collapsed` (1/0),
+  one flag per reason, and the probe's largest slot share, active slots and pixel entropy.
+  """
+  usage = collapse.slot_usage(segmentation=segmentation, foreground_mask=foreground)
+  brightness = collapse.black_render(rendered=rendered, target=target)
+  verdict = collapse.is_collapsed(usage, brightness=brightness)
+  has_fg = np.asarray(usage.foreground_pixels) > 0
+  mean = lambda x: float(np.mean(np.asarray(x, np.float64)[has_fg])) if has_fg.any() else math.nan
+  return dict(
+      collapsed=float(verdict.collapsed), collapse_dominant_slot=float(verdict.dominant_slot),
+      collapse_too_few_active=float(verdict.too_few_active),
+      collapse_near_uniform=float(verdict.near_uniform), collapse_black=float(verdict.black),
+      probe_largest_share=mean(usage.largest_share), probe_active_slots=mean(usage.active_slots),
+      probe_pixel_entropy=mean(usage.pixel_entropy))
+
+
+class Validator:
+  """Renders a few validation scenes during training, scores them and writes a PNG panel."""
+
+  def __init__(self, model, config, scenes: list[Scene], workdir: str, *, num_pictures: int = 3):
+    self.renderer = render_views.SceneRenderer(model, config)
+    self.scenes = scenes
+    self.workdir = workdir
+    self.num_pictures = num_pictures
+    self.use_masks = bool(config.data.has_masks)  # never score made-up masks (docs/method.md §3.3)
+    self.has_masks = self.use_masks and all(s.masks is not None for s in scenes)
+    self.near, self.far = config.render.near, config.render.far
+    self.locality_steps = int(config.train.locality_steps)
+
+  def run(self, params, step: int) -> dict:
+    # `step` updates have been applied, so the next training step is `step`.
+    locality = bool(schedules.locality_on(step, steps=self.locality_steps))
+    per_scene, rows = [], []
+    probe_seg, probe_fg, probe_rgb, probe_target = [], [], [], []
+    for n, scene in enumerate(self.scenes):
+      views = list(range(scene.num_views))
+      rendered = self.renderer.render(params, scene, views, locality=locality)
+      if not self.use_masks:
+        scene = dataclasses.replace(scene, masks=None, mask_views=None)
+      per_scene.append(evaluate.scene_metrics(rendered, scene, views))
+      # The fixed validation scenes are the collapse probe (docs/method.md §6): their novel views.
+      novel = list(scene.novel_indices)
+      probe_seg.append(rendered.segmentation[novel].reshape(len(novel), -1,
+                                                             rendered.segmentation.shape[-1]))
+      probe_rgb.append(rendered.colour[novel].reshape(len(novel), -1, 3))
+      probe_target.append(scene.images[novel].reshape(len(novel), -1, 3))
+      if self.has_masks:
+        probe_fg.append((scene.masks[novel] > 0).reshape(len(novel), -1))
+      if n < self.num_pictures:
+        v = scene.novel_indices[0] if scene.novel_indices else 0
+        row = [scene.images[v], rendered.colour[v],
+               vis.colour_segmentation(rendered.segmentation[v]),
+               vis.colour_depth(rendered.depth[v], near=self.near, far=self.far)]
+        if scene.masks is not None:
+          row.insert(1, vis.colour_labels(scene.masks[v]))
+        rows.append(row)
+    result = evaluate.mean_over_scenes(per_scene)
+    if probe_seg:
+      result.update(collapse_statistics(
+          segmentation=np.concatenate(probe_seg), rendered=np.concatenate(probe_rgb),
+          target=np.concatenate(probe_target),
+          foreground=np.concatenate(probe_fg) if self.has_masks else None))
+    # Model selection (docs/method.md §4): NV-ARI where the set has masks, else novel-view PSNR.
+    score_key = "nv_ari" if self.has_masks else "psnr_novel"
+    result["score"] = result.get(score_key, np.nan)
+    if not np.isfinite(result["score"]):
+      result["score"] = -1.0
+    if rows:
+      vis.save_png(os.path.join(self.workdir, "val", f"step_{step:07d}.png"), vis.grid(rows))
+    return result
