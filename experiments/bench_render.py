@@ -96,8 +96,8 @@ def _with_adaptive(config, setting: dict):
 
 def _random_params(model, scene):
   import jax
-  from slotlifter_jax import evaluate
-  inputs = evaluate.init_batch(scene)
+  from slotlifter_jax import train_step
+  inputs = train_step.init_batch(scene)
   inputs.pop("target_rgb")
   return jax.jit(lambda: model.init(jax.random.key(0), **inputs, train=False))()["params"]
 

@@ -15,7 +15,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from slotlifter_jax import checkpoints as ckpt_lib
-from slotlifter_jax import evaluate
 from slotlifter_jax import geometry
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import render_views
@@ -37,7 +36,7 @@ def main(config_arg: str, run_dir: str, scene_index: int = 0, split: str = "val"
   scene = registry.load_split(config.data, split, max_scenes=scene_index + 1)[scene_index]
   model = model_lib.build_model(config)
   key = jax.random.key(0, impl=config.train.prng_impl)
-  abstract = step_lib.init_state(model, config, evaluate.init_batch(scene), key)
+  abstract = step_lib.init_state(model, config, step_lib.init_batch(scene), key)
   manager = ckpt_lib.Checkpoints(run_dir)
   state = manager.restore(abstract)
   manager.close()

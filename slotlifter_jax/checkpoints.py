@@ -1,4 +1,5 @@
-"""Checkpoints of a run's work directory, and the config saved beside them.
+"""Checkpoints of a run's work directory, the config saved beside them, and the choice and restore
+of a trained run's parameters for --mode=eval and --mode=render (`restore_params`).
 
 Layout of a work directory:
   DIR/config.json            the config the run was started with (compared on resume and eval)
@@ -15,6 +16,10 @@ from typing import Any
 import jax
 import ml_collections
 import orbax.checkpoint as ocp
+from etils import epath
+
+from slotlifter_jax import train_step as step_lib
+from slotlifter_jax.data.types import Scene
 
 # Fields whose change makes a checkpoint unusable: the parameter shapes depend on them.
 ARCHITECTURE_FIELDS = ("model",)
@@ -22,6 +27,14 @@ ARCHITECTURE_FIELDS = ("model",)
 
 class CheckpointMismatchError(ValueError):
   """A checkpoint or saved config does not fit the requested config."""
+
+
+class EvalSetupError(ValueError):
+  """A bad request to the evaluation (unknown split, checkpoint or scene index).
+
+  Defined here, beside the checkpoint choice that raises it, so that this module need not import
+  evaluate; evaluate imports it, and the command line catches it as evaluate.EvalSetupError.
+  """
 
 
 class Checkpoints:
@@ -127,3 +140,87 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
 
 def _normalise(v: Any):
   return list(v) if isinstance(v, tuple) else v
+
+
+# ---------------------------------------------------------------------------------------------
+# Restoring a trained run's parameters (evaluation and render modes)
+# ---------------------------------------------------------------------------------------------
+
+
+def abstract_state(model, config, scene: Scene) -> step_lib.TrainState:
+  """The train state's shapes and dtypes (nothing computed), placed on the first device."""
+  shapes = jax.eval_shape(
+      lambda: step_lib.init_state(model, config, step_lib.init_batch(scene), jax.random.key(0)))
+  device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), shapes)
+
+
+def _choose_checkpoint(manager: Checkpoints, checkpoint: str) -> tuple[str, int]:
+  """('best' | 'latest', step) for --checkpoint = '' (best if any, else latest) | best | latest |
+  <step>."""
+  latest, best = manager.latest.all_steps(), manager.best.all_steps()
+  if not latest and not best:
+    raise FileNotFoundError(f"{manager.latest.directory}: no checkpoint; train this run first")
+  if checkpoint in ("", "best") and best:
+    return "best", int(manager.best.best_step())
+  if checkpoint == "best":
+    raise EvalSetupError(f"{manager.best.directory}: no best checkpoint (the run never "
+                         f"validated); use --checkpoint=latest")
+  if checkpoint in ("", "latest"):
+    if not latest:
+      raise EvalSetupError(f"{manager.latest.directory}: no latest checkpoint; use "
+                           f"--checkpoint=best")
+    return "latest", int(manager.latest.latest_step())
+  if not checkpoint.isdigit():
+    raise EvalSetupError(f"--checkpoint={checkpoint!r}: use best, latest or a step number")
+  step = int(checkpoint)
+  if step in latest:
+    return "latest", step
+  if step in best:
+    return "best", step
+  raise EvalSetupError(f"--checkpoint={step}: no such step; saved steps: latest "
+                       f"{sorted(latest)}, best {sorted(best)}")
+
+
+def _parameter_differences(abstract_params, step_dir: str, *, limit: int = 8) -> list[str]:
+  """'path: checkpoint shape, model shape' for every parameter whose shape differs, read from the
+  checkpoint's metadata (nothing is restored)."""
+  handler = ocp.StandardCheckpointHandler()
+  try:
+    saved = handler.metadata(epath.Path(step_dir) / "default")["params"]
+  finally:
+    handler.close()
+  def shapes(tree):
+    return {jax.tree_util.keystr(p): tuple(x.shape) for p, x in
+            jax.tree_util.tree_flatten_with_path(tree, is_leaf=lambda x: hasattr(x, "shape"))[0]}
+  a, b = shapes(saved), shapes(abstract_params)
+  out = [f"params{k}: checkpoint {a.get(k, 'absent')}, model {b.get(k, 'absent')}"
+         for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+  return out[:limit] + ([f"... and {len(out) - limit} more"] if len(out) > limit else [])
+
+
+def restore_params(model, config, workdir: str, *, scene: Scene,
+                   checkpoint: str = "") -> tuple[dict, int, str]:
+  """(params, step, step directory) of the run's checkpoint `checkpoint` (see `_choose_checkpoint`).
+
+  Raises CheckpointMismatchError naming the parameters whose shapes differ when the checkpoint
+  does not fit the model built from `config`. The shapes are compared on the checkpoint's
+  metadata first, so a mismatch never starts (and abandons) orbax's array reads.
+  """
+  root = os.path.join(workdir, "checkpoints")
+  if not os.path.isdir(root):
+    raise FileNotFoundError(f"{root}: no checkpoints; train this run first (--mode=train)")
+  manager = Checkpoints(workdir)
+  try:
+    which, step = _choose_checkpoint(manager, checkpoint)
+    step_dir = os.path.join(root, which, str(step))
+    abstract = abstract_state(model, config, scene)
+    diffs = _parameter_differences(abstract.params, step_dir)
+    if diffs:
+      raise CheckpointMismatchError(
+          f"{step_dir}: the checkpoint does not fit the model built from the config (other K, "
+          f"feature width or layout?)" + "".join(f"\n  {d}" for d in diffs))
+    state = manager.restore(abstract, step=step, which=which)
+  finally:
+    manager.close()
+  return state.params, step, step_dir

@@ -42,7 +42,7 @@ from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import metrics
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import render_views
-from slotlifter_jax import train_step as step_lib
+from slotlifter_jax.checkpoints import EvalSetupError
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import pipeline
 from slotlifter_jax.data import registry
@@ -80,10 +80,6 @@ AGGREGATION = ("a per-view value is averaged over the scene's views of its kind 
                "skipped), then mean, standard error (sample std / sqrt(count)) and count over "
                "scenes; a scene without a usable view is skipped. Prediction = argmax over the K "
                "real slots of the rendered segmentation. Non-finite numbers are written as null.")
-
-
-class EvalSetupError(ValueError):
-  """A bad request to the evaluation (unknown split, checkpoint or scene index)."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -208,102 +204,6 @@ class LoadedRun:
   split: str
 
 
-def init_batch(scene: Scene) -> dict[str, np.ndarray]:
-  """A one-scene, one-ray batch with the model's input shapes (parameter shapes depend only on V
-  and the image channels, not on H, W or the ray count)."""
-  idx = np.asarray(scene.source_indices)
-  centre = scene.cam_to_world[idx[0], :3, 3]
-  return dict(
-      source_images=scene.images[idx][None],  # [1, V, H, W, 3]
-      source_cam_to_world=scene.cam_to_world[idx][None],  # [1, V, 4, 4]
-      source_intrinsics=scene.intrinsics[idx][None],  # [1, V, 3, 3]
-      ray_origins=np.broadcast_to(centre, (1, 1, 3)).astype(np.float32),
-      ray_directions=scene.cam_to_world[idx[0], :3, 2][None, None].astype(np.float32),
-      target_rgb=np.zeros((1, 1, 3), np.float32),
-  )
-
-
-def abstract_state(model, config, scene: Scene) -> step_lib.TrainState:
-  """The train state's shapes and dtypes (nothing computed), placed on the first device."""
-  shapes = jax.eval_shape(
-      lambda: step_lib.init_state(model, config, init_batch(scene), jax.random.key(0)))
-  device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), shapes)
-
-
-def _choose_checkpoint(manager: ckpt_lib.Checkpoints, checkpoint: str) -> tuple[str, int]:
-  """('best' | 'latest', step) for --checkpoint = '' (best if any, else latest) | best | latest |
-  <step>."""
-  latest, best = manager.latest.all_steps(), manager.best.all_steps()
-  if not latest and not best:
-    raise FileNotFoundError(f"{manager.latest.directory}: no checkpoint; train this run first")
-  if checkpoint in ("", "best") and best:
-    return "best", int(manager.best.best_step())
-  if checkpoint == "best":
-    raise EvalSetupError(f"{manager.best.directory}: no best checkpoint (the run never "
-                         f"validated); use --checkpoint=latest")
-  if checkpoint in ("", "latest"):
-    if not latest:
-      raise EvalSetupError(f"{manager.latest.directory}: no latest checkpoint; use "
-                           f"--checkpoint=best")
-    return "latest", int(manager.latest.latest_step())
-  if not checkpoint.isdigit():
-    raise EvalSetupError(f"--checkpoint={checkpoint!r}: use best, latest or a step number")
-  step = int(checkpoint)
-  if step in latest:
-    return "latest", step
-  if step in best:
-    return "best", step
-  raise EvalSetupError(f"--checkpoint={step}: no such step; saved steps: latest "
-                       f"{sorted(latest)}, best {sorted(best)}")
-
-
-def _parameter_differences(abstract_params, step_dir: str, *, limit: int = 8) -> list[str]:
-  """'path: checkpoint shape, model shape' for every parameter whose shape differs, read from the
-  checkpoint's metadata (nothing is restored)."""
-  import orbax.checkpoint as ocp
-  from etils import epath
-  handler = ocp.StandardCheckpointHandler()
-  try:
-    saved = handler.metadata(epath.Path(step_dir) / "default")["params"]
-  finally:
-    handler.close()
-  def shapes(tree):
-    return {jax.tree_util.keystr(p): tuple(x.shape) for p, x in
-            jax.tree_util.tree_flatten_with_path(tree, is_leaf=lambda x: hasattr(x, "shape"))[0]}
-  a, b = shapes(saved), shapes(abstract_params)
-  out = [f"params{k}: checkpoint {a.get(k, 'absent')}, model {b.get(k, 'absent')}"
-         for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
-  return out[:limit] + ([f"... and {len(out) - limit} more"] if len(out) > limit else [])
-
-
-def restore_params(model, config, workdir: str, *, scene: Scene,
-                   checkpoint: str = "") -> tuple[dict, int, str]:
-  """(params, step, step directory) of the run's checkpoint `checkpoint` (see `_choose_checkpoint`).
-
-  Raises CheckpointMismatchError naming the parameters whose shapes differ when the checkpoint
-  does not fit the model built from `config`. The shapes are compared on the checkpoint's
-  metadata first, so a mismatch never starts (and abandons) orbax's array reads.
-  """
-  root = os.path.join(workdir, "checkpoints")
-  if not os.path.isdir(root):
-    raise FileNotFoundError(f"{root}: no checkpoints; train this run first (--mode=train)")
-  manager = ckpt_lib.Checkpoints(workdir)
-  try:
-    which, step = _choose_checkpoint(manager, checkpoint)
-    step_dir = os.path.join(root, which, str(step))
-    abstract = abstract_state(model, config, scene)
-    diffs = _parameter_differences(abstract.params, step_dir)
-    if diffs:
-      raise ckpt_lib.CheckpointMismatchError(
-          f"{step_dir}: the checkpoint does not fit the model built from the config (other K, "
-          f"feature width or layout?)" + "".join(f"\n  {d}" for d in diffs))
-    state = manager.restore(abstract, step=step, which=which)
-  finally:
-    manager.close()
-  return state.params, step, step_dir
-
-
 def _warn_other_differences(config, saved: dict) -> None:
   """Data and render settings may legitimately differ from training (another data root, chunk
   size); they are reported, not refused. Only the model section must match (check_compatible)."""
@@ -346,8 +246,8 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
   if not scenes:
     raise DataError(f"{config.data.root}: split {split!r} has no scenes")
   model = model_lib.build_model(config)
-  params, step, step_dir = restore_params(model, config, workdir, scene=scenes[0],
-                                          checkpoint=checkpoint)
+  params, step, step_dir = ckpt_lib.restore_params(model, config, workdir, scene=scenes[0],
+                                                   checkpoint=checkpoint)
   return LoadedRun(config=config, model=model, params=params, step=step,
                    checkpoint_dir=step_dir, scenes=scenes, split=split)
 

@@ -23,6 +23,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import schedules
 from slotlifter_jax.data import device_sampler
+from slotlifter_jax.data.types import Scene
 
 RNG_STREAMS = ("dropout", "noise", "sample", "mask")
 # Batch entries with a ray axis (axis 1), which ray chunks split; the others are per scene.
@@ -88,6 +89,21 @@ def model_inputs(batch: dict, *, signed_colour: bool) -> dict:
 
 def to_unit_colour(colour, *, signed_colour: bool):
   return (colour + 1.0) * 0.5 if signed_colour else colour
+
+
+def init_batch(scene: Scene) -> dict[str, np.ndarray]:
+  """A one-scene, one-ray batch with the model's input shapes (parameter shapes depend only on V
+  and the image channels, not on H, W or the ray count)."""
+  idx = np.asarray(scene.source_indices)
+  centre = scene.cam_to_world[idx[0], :3, 3]
+  return dict(
+      source_images=scene.images[idx][None],  # [1, V, H, W, 3]
+      source_cam_to_world=scene.cam_to_world[idx][None],  # [1, V, 4, 4]
+      source_intrinsics=scene.intrinsics[idx][None],  # [1, V, 3, 3]
+      ray_origins=np.broadcast_to(centre, (1, 1, 3)).astype(np.float32),
+      ray_directions=scene.cam_to_world[idx[0], :3, 2][None, None].astype(np.float32),
+      target_rgb=np.zeros((1, 1, 3), np.float32),
+  )
 
 
 def init_state(model, config, batch: dict, key: jax.Array) -> TrainState:

@@ -11,10 +11,10 @@ import pytest
 
 from data_fixtures import orbit_pose
 from slotlifter_jax import adaptive
-from slotlifter_jax import evaluate
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import render
 from slotlifter_jax import render_views
+from slotlifter_jax import train_step as step_lib
 from slotlifter_jax.data.types import Scene
 from test_train import load_config
 
@@ -254,7 +254,7 @@ def smoke_model():
   scene = Scene(name="smoke", images=rng.uniform(size=(3, H, W, 3)).astype(np.float32),
                 cam_to_world=c2w, intrinsics=np.repeat(k[None], 3, 0), source_indices=(0,))
   model = model_lib.build_model(config)
-  inputs = evaluate.init_batch(scene)
+  inputs = step_lib.init_batch(scene)
   inputs.pop("target_rgb")
   params = jax.jit(lambda: model.init(jax.random.key(0), **inputs, train=False))()["params"]
   plain = render_views.SceneRenderer(model, config).render(params, scene, [0, 1, 2])
