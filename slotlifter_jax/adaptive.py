@@ -441,3 +441,14 @@ class AdaptiveSceneRenderer:
     """As `render_views.SceneRenderer.render`."""
     return self.render_with_diagnostics(params, scene, view_indices,
                                         source_indices=source_indices, locality=locality)[0]
+
+
+def make_scene_renderer(model, config):
+  """The renderer the eval mode uses: `AdaptiveSceneRenderer` when `render.adaptive` is on
+  (issue #7; same `render` signature and result), else `render_views.SceneRenderer` (every pixel on
+  the whole sample grid). Validation during training keeps SceneRenderer, so model selection is
+  exact. The switch lives here, not in render_views, because this module builds on render_views:
+  the import then runs one way."""
+  if config.render.get("adaptive", False):
+    return AdaptiveSceneRenderer(model, config)
+  return render_views.SceneRenderer(model, config)

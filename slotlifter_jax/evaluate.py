@@ -38,6 +38,7 @@ import numpy as np
 from absl import logging
 from tqdm import tqdm
 
+from slotlifter_jax import adaptive
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import metrics
 from slotlifter_jax import model as model_lib
@@ -315,7 +316,7 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
     raise FileExistsError(f"{metrics_path} exists; pass --overwrite to replace it")
   run = load_run(config, workdir, split=split, checkpoint=checkpoint, max_scenes=max_scenes)
   net = lpips_net_for(run.config)
-  renderer = render_views.make_scene_renderer(run.model, run.config)  # render.adaptive switches
+  renderer = adaptive.make_scene_renderer(run.model, run.config)  # render.adaptive switches
   t_setup = time.perf_counter() - t_start
 
   per_scene, render_s, metric_s, num_views = [], [], [], []

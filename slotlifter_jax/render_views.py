@@ -122,13 +122,3 @@ class SceneRenderer:
                          slots=np.asarray(encoded.slots[0]),
                          slot_attn=np.asarray(encoded.slot_attn[0]),
                          source_labels=source_attention_labels(encoded, (height, width)))
-
-
-def make_scene_renderer(model, config):
-  """The renderer the eval mode uses: `adaptive.AdaptiveSceneRenderer` when `render.adaptive` is
-  on (issue #7; same `render` signature and result), else SceneRenderer (every pixel on the whole
-  sample grid). Validation during training keeps SceneRenderer, so model selection is exact."""
-  if config.render.get("adaptive", False):
-    from slotlifter_jax import adaptive  # adaptive imports this module
-    return adaptive.AdaptiveSceneRenderer(model, config)
-  return SceneRenderer(model, config)

@@ -273,7 +273,7 @@ def test_whole_grid_window_equals_the_plain_renderer(smoke_model):
   config, model, params, scene, plain = smoke_model
   s = config.render.num_samples
   cfg = _adaptive(config, adaptive_window=s, adaptive_stride=3)
-  renderer = render_views.make_scene_renderer(model, cfg)
+  renderer = adaptive.make_scene_renderer(model, cfg)
   assert isinstance(renderer, adaptive.AdaptiveSceneRenderer)
   got, diags = renderer.render_with_diagnostics(params, scene, [0, 1, 2])
   chex.assert_shape(got.colour, (3, H, W, 3))
@@ -329,7 +329,7 @@ def test_adaptive_refuses_fine_pass_and_bad_settings(smoke_model):
         method=model_lib.SlotLifter.render_at_depths)
   with pytest.raises(ValueError, match="adaptive_window"):
     adaptive.AdaptiveSceneRenderer(model, _adaptive(config, adaptive_window=99))
-  assert isinstance(render_views.make_scene_renderer(model, config), render_views.SceneRenderer)
+  assert isinstance(adaptive.make_scene_renderer(model, config), render_views.SceneRenderer)
 
 
 def test_render_mode_slot_renderer_switches_to_adaptive(smoke_model):
