@@ -20,6 +20,21 @@ def head_lr_factor(t, *, floor: float, decay_steps: int):
   return floor + (1.0 - floor) * 0.5 ** (t / decay_steps)
 
 
+def backbone_lr(t, train_config):
+  """The backbone's learning rate at step t: base_lr · backbone_lr_factor. The one definition that
+  both the optimiser (train_step.make_optimizer) and the logged `lr_backbone` use, so the number
+  in the metrics is the rate that was applied."""
+  c = train_config
+  return c.base_lr * backbone_lr_factor(
+      t, floor=c.lr_floor, warmup_steps=c.warmup_steps, decay_steps=c.decay_steps)
+
+
+def head_lr(t, train_config):
+  """The head's learning rate at step t: base_lr · head_lr_factor (optimiser and `lr_head`)."""
+  c = train_config
+  return c.base_lr * head_lr_factor(t, floor=c.lr_floor, decay_steps=c.decay_steps)
+
+
 def _cosine_to_zero(t, steps: int):
   """1 at t = 0, cosine down to 0 at t = steps, 0 afterwards."""
   t = jnp.asarray(t, jnp.float32)
@@ -51,9 +66,8 @@ def all_schedules(t, train_config) -> dict:
   """The schedule values for step t, as reported in the training metrics."""
   c = train_config
   return dict(
-      lr_backbone=c.base_lr * backbone_lr_factor(
-          t, floor=c.lr_floor, warmup_steps=c.warmup_steps, decay_steps=c.decay_steps),
-      lr_head=c.base_lr * head_lr_factor(t, floor=c.lr_floor, decay_steps=c.decay_steps),
+      lr_backbone=backbone_lr(t, c),
+      lr_head=head_lr(t, c),
       keep_ratio=keep_ratio(t, mask_max=c.mask_max, anneal_steps=c.mask_anneal_steps),
       slot_noise_sigma=slot_noise_sigma(t, anneal_steps=c.noise_anneal_steps),
       locality=locality_on(t, steps=c.locality_steps),

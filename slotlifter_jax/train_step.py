@@ -53,11 +53,9 @@ def param_groups(params) -> Any:
 
 def make_optimizer(train_config) -> optax.GradientTransformation:
   c = train_config
-  def backbone_lr(t):
-    return c.base_lr * schedules.backbone_lr_factor(
-        t, floor=c.lr_floor, warmup_steps=c.warmup_steps, decay_steps=c.decay_steps)
-  def head_lr(t):
-    return c.base_lr * schedules.head_lr_factor(t, floor=c.lr_floor, decay_steps=c.decay_steps)
+  # Optax calls a schedule with the update count alone; the rates are those the metrics log.
+  backbone_lr = lambda t: schedules.backbone_lr(t, c)
+  head_lr = lambda t: schedules.head_lr(t, c)
   def lion(lr):
     # optax.lion applies decoupled weight decay scaled by the lr, as the official Lion does.
     return optax.lion(lr, b1=c.b1, b2=c.b2, weight_decay=c.weight_decay)
