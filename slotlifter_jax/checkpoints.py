@@ -207,7 +207,7 @@ def restore_params(model, config, workdir: str, *, scene: Scene,
   does not fit the model built from `config`. The shapes are compared on the checkpoint's
   metadata first, so a mismatch never starts (and abandons) orbax's array reads.
   """
-  root = os.path.join(workdir, "checkpoints")
+  root = os.path.join(os.path.abspath(workdir), "checkpoints")  # orbax refuses relative paths
   if not os.path.isdir(root):
     raise FileNotFoundError(f"{root}: no checkpoints; train this run first (--mode=train)")
   manager = Checkpoints(workdir)

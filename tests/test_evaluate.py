@@ -280,6 +280,15 @@ def test_eval_writes_metrics_and_refuses_to_overwrite(run_dir):
 
 
 @pytest.mark.slow
+def test_eval_takes_the_workdir_relative_to_the_current_folder(run_dir, monkeypatch):
+  """The README's commands pass `--workdir=runs/…`; orbax refuses relative checkpoint paths."""
+  monkeypatch.chdir(os.path.dirname(run_dir))
+  result = evaluate.evaluate_split(load_config(), os.path.basename(run_dir), split="val",
+                                   max_scenes=1, overwrite=True, progress=False)
+  assert os.path.isfile(os.path.join(run_dir, "eval", "val", "metrics.json"))
+  assert result.checkpoint_step > 0
+
+
 def test_eval_refuses_other_model_config(run_dir):
   config = load_config()
   config.model.num_slots = 5
