@@ -54,7 +54,12 @@ def main(argv):
                jax.process_count(), runtime.describe())
   if FLAGS.mode == "train":
     from slotlifter_jax import train
-    train.train_and_evaluate(FLAGS.config, FLAGS.workdir)
+    try:
+      train.train_and_evaluate(FLAGS.config, FLAGS.workdir)
+    except train.Interrupted as e:
+      # Not a success: a script chaining `train && eval` must not go on.
+      logging.warning("%s", e)
+      sys.exit(128 + e.signum)
     return
   from slotlifter_jax import checkpoints, evaluate, render_mode
   from slotlifter_jax.data.types import DataError

@@ -34,6 +34,16 @@ class NonFiniteError(RuntimeError):
   """Too many non-finite steps in a row."""
 
 
+class Interrupted(Exception):
+  """Training stopped on SIGINT/SIGTERM after checkpointing; the run resumes where it stopped.
+  The command line exits with 128 + the signal's number, as a shell does for a killed job."""
+
+  def __init__(self, signum: int, step: int):
+    super().__init__(f"interrupted by signal {signum} at step {step}; checkpointed, run the same "
+                     f"command again to resume")
+    self.signum, self.step = signum, step
+
+
 class _StopFlag:
   """Turns SIGINT/SIGTERM into a flag the loop checks, so it can checkpoint before leaving."""
 
@@ -50,6 +60,9 @@ class _StopFlag:
     if self.signal is not None:  # a second signal: leave now
       raise KeyboardInterrupt
     self.signal = signum
+    # The flag is read between steps; the first step (or block) compiles before it runs.
+    logging.warning("signal %d: checkpointing and exiting after the current step (after it "
+                    "compiles, if it is the first); send it again to leave at once", signum)
 
   def __exit__(self, *exc):
     for s, h in self._old.items():
@@ -244,6 +257,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   total = config.train.num_steps
   last_val = {}
   restart = False
+  interrupted = None
   batches = None if on_device else pipeline.prefetch(
       (sampler.batch(s) for s in range(start, total)), size=2)
   clock = _RunClock(workdir)
@@ -307,6 +321,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
         if stop.signal is not None:
           logging.warning("signal %d: checkpointing at step %d and exiting", stop.signal, done)
           checkpoints.save(state, force=True)
+          interrupted = Interrupted(stop.signal, done)
           break
   finally:
     checkpoints.wait()
@@ -315,6 +330,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     if batches is not None:
       batches.close()
   _record_emergence(workdir)
+  if interrupted is not None:
+    raise interrupted
   if restart:
     return train_and_evaluate(_restart_after_collapse(config, workdir, done), workdir)
   if last_val.get("collapsed") == 1.0:

@@ -149,7 +149,9 @@ def _straight_and_interrupted_runs(config, tmp_path, monkeypatch, factory: str):
       return inner(state, data)
     return step
   monkeypatch.setattr(step_lib, factory, make_interrupting)
-  train.train_and_evaluate(load_config_with(config), str(tmp_path / "resumed"))
+  with pytest.raises(train.Interrupted) as interrupted:
+    train.train_and_evaluate(load_config_with(config), str(tmp_path / "resumed"))
+  assert (interrupted.value.signum, interrupted.value.step) == (signal.SIGINT, 3)
   assert _final_params(str(tmp_path / "resumed"), config)[0] == 3
   monkeypatch.setattr(step_lib, factory, real_make)
   train.train_and_evaluate(load_config_with(config), str(tmp_path / "resumed"))

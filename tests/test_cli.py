@@ -1,0 +1,114 @@
+"""The README's commands, run as a new user runs them: `python -m slotlifter_jax.main` in a fresh
+folder with relative paths, the smoke variant in place of quick.
+
+Train, SIGINT, resume, eval and render, checking exit codes and files. The README is read too: a
+`slotlifter_jax.main` command it shows with a mode or flag this test does not run fails the test,
+so the README and the commands that are known to work cannot drift apart.
+"""
+
+import os
+import re
+import shlex
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+MAIN = re.compile(r"\.venv/bin/python -m slotlifter_jax\.main ([^\n`]+)")
+# Flags this test passes in each mode (with the README's values, where the README gives them).
+RUN_FLAGS = {"train": {"--config", "--workdir"},
+             "eval": {"--config", "--workdir", "--mode"},
+             "render": {"--config", "--workdir", "--mode", "--scenes"}}
+
+
+def readme_commands() -> list[list[str]]:
+  with open(os.path.join(REPO, "README.md")) as f:
+    return [shlex.split(m) for m in MAIN.findall(f.read())]
+
+
+def mode_and_flags(args: list[str]) -> tuple[str, set[str]]:
+  flags = {a.split("=", 1)[0] for a in args}
+  mode = next((a.split("=", 1)[1] for a in args if a.startswith("--mode=")), "train")
+  return mode, flags
+
+
+def test_every_readme_command_is_one_this_file_runs():
+  commands = readme_commands()
+  assert len(commands) >= 3
+  for args in commands:
+    mode, flags = mode_and_flags(args)
+    assert mode in RUN_FLAGS, f"README: mode {mode!r} of {' '.join(args)} is not tested here"
+    untested = flags - RUN_FLAGS[mode] - {"--max_scenes"}  # --max_scenes: see the eval step below
+    assert not untested, f"README: {' '.join(args)} uses {sorted(untested)}, not tested here"
+    config = next(a.split("=", 1)[1] for a in args if a.startswith("--config="))
+    assert os.path.isfile(os.path.join(REPO, config.split(":")[0])), config
+
+
+def _readme_command(mode: str) -> list[str]:
+  """The README's quick command of `mode`, with the smoke variant."""
+  for args in readme_commands():
+    if mode_and_flags(args)[0] == mode and "configs/clevr.py:quick" in " ".join(args):
+      return [a.replace("configs/clevr.py:quick", "configs/clevr.py:smoke") for a in args]
+  raise AssertionError(f"README shows no quick {mode} command")
+
+
+def _main(args, cwd, **kwargs):
+  return subprocess.Popen([sys.executable, "-m", "slotlifter_jax.main", *args], cwd=cwd,
+                          stdout=subprocess.PIPE, stderr=subprocess.STDOUT, **kwargs)
+
+
+def _run(args, cwd) -> str:
+  proc = _main(args, cwd)
+  out = proc.communicate(timeout=600)[0].decode(errors="replace")
+  assert proc.returncode == 0, f"{args} exited {proc.returncode}:\n{out[-3000:]}"
+  return out
+
+
+@pytest.mark.slow
+def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
+  shutil.copytree(os.path.join(REPO, "configs"), tmp_path / "configs")  # a clone's root
+  train = _readme_command("train")
+  workdir = next(a.split("=", 1)[1] for a in train if a.startswith("--workdir="))
+  assert not os.path.isabs(workdir)
+
+  # SIGINT once the loop is running: the run checkpoints and exits 128 + 2, not 0.
+  proc = _main(train, tmp_path)
+  output = bytearray()
+  def read():
+    for chunk in iter(lambda: proc.stdout.read1(4096), b""):
+      output.extend(chunk)
+  reader = threading.Thread(target=read)
+  reader.start()
+  deadline = time.time() + 600
+  loop_started = re.compile(rb"(^|[\r\n])train:")  # the loop's bar, not the generator's
+  while not loop_started.search(output) and proc.poll() is None and time.time() < deadline:
+    time.sleep(0.2)
+  proc.send_signal(signal.SIGINT)
+  proc.wait(timeout=600)
+  reader.join()
+  text = output.decode(errors="replace")
+  assert proc.returncode == 128 + signal.SIGINT, text[-3000:]
+  assert "checkpointing and exiting after the current step" in text
+  steps = sorted(int(s) for s in os.listdir(tmp_path / workdir / "checkpoints" / "latest")
+                 if s.isdigit())
+  assert steps and steps[-1] < 6, steps  # the smoke run has 6 steps
+
+  # The same command again resumes and finishes.
+  out = _run(train, tmp_path)
+  assert "resumed from step" in out, out[-3000:]
+  steps = sorted(int(s) for s in os.listdir(tmp_path / workdir / "checkpoints" / "latest")
+                 if s.isdigit())
+  assert steps[-1] == 6, steps
+
+  out = _run(_readme_command("eval"), tmp_path)
+  assert os.path.isfile(tmp_path / workdir / "eval" / "test" / "metrics.json"), out[-3000:]
+  render = _readme_command("render")
+  out = _run(render, tmp_path)
+  scenes = next(a.split("=", 1)[1] for a in render if a.startswith("--scenes="))
+  for i in scenes.split(","):
+    assert os.path.isfile(tmp_path / workdir / "render" / "test" / f"scene_{int(i):04d}_panel.png")
