@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import json
 import os
+import time
 from typing import Any
 
 import jax
 import ml_collections
+from absl import logging
 import orbax.checkpoint as ocp
 from etils import epath
 
@@ -91,8 +93,40 @@ def config_path(workdir: str) -> str:
   return os.path.join(workdir, "config.json")
 
 
-def save_config(config: ml_collections.ConfigDict, workdir: str) -> None:
-  """Writes DIR/config.json atomically (temp file + rename)."""
+def config_history_path(workdir: str) -> str:
+  return os.path.join(workdir, "config_history.jsonl")
+
+
+def config_changes(saved: dict, config: ml_collections.ConfigDict) -> dict:
+  """{'section.field': [saved, requested]} for every field whose value differs."""
+  current = json.loads(config.to_json_best_effort())
+  changes = {}
+  def walk(a: dict, b: dict, prefix: str):
+    for k in sorted(set(a) | set(b)):
+      x, y = a.get(k), b.get(k)
+      if isinstance(x, dict) and isinstance(y, dict):
+        walk(x, y, f"{prefix}{k}.")
+      elif _normalise(x) != _normalise(y):
+        changes[prefix + k] = [x, y]
+  walk(saved, current, "")
+  return changes
+
+
+def save_config(config: ml_collections.ConfigDict, workdir: str, *, step: int = 0) -> None:
+  """Writes DIR/config.json atomically (temp file + rename).
+
+  A resume with other (non-architecture) values first appends them to DIR/config_history.jsonl,
+  `{"step", "time", "changes": {field: [before, after]}}`, so the record of how the run was
+  trained up to `step` is never lost by overwriting config.json.
+  """
+  saved = load_saved_config(workdir)
+  changes = config_changes(saved, config) if saved is not None else {}
+  if changes:
+    with open(config_history_path(workdir), "a") as f:
+      f.write(json.dumps({"step": int(step), "time": time.time(), "changes": changes}) + "\n")
+    logging.warning("%s: resuming at step %d with changed fields (kept in %s): %s", workdir,
+                    step, os.path.basename(config_history_path(workdir)),
+                    "; ".join(f"{k}: {a!r} -> {b!r}" for k, (a, b) in changes.items()))
   os.makedirs(workdir, exist_ok=True)
   path = config_path(workdir)
   tmp = path + ".tmp"

@@ -69,6 +69,13 @@ class _StopFlag:
       signal.signal(s, h)
 
 
+def _latest_step(workdir: str) -> int:
+  """The step a resume starts from (0 for a new run), read without opening a checkpoint manager."""
+  latest = os.path.join(workdir, "checkpoints", "latest")
+  steps = [int(s) for s in os.listdir(latest) if s.isdigit()] if os.path.isdir(latest) else []
+  return max(steps, default=0)
+
+
 class MetricWriter:
   """Metrics as JSON lines (DIR/metrics.jsonl) and TensorBoard events (DIR/tb)."""
 
@@ -190,7 +197,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   With `train.collapse_restarts` > 0, a run whose validation flags collapse once the schedules have
   settled is moved to workdir/collapsed/seed_<seed>/ and trained again from the next seed.
   """
-  os.makedirs(workdir, exist_ok=True)
+  # Nothing is created until the config and the data are known to be good.
+  if os.path.exists(workdir) and not os.path.isdir(workdir):
+    raise FileExistsError(f"{workdir}: exists and is not a directory; choose another --workdir")
   saved = ckpt_lib.load_saved_config(workdir)
   ckpt_lib.check_compatible(config, saved, workdir)
   if saved is not None and saved.get("seed") != config.seed and os.path.isdir(
@@ -205,7 +214,6 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   val_scenes = registry.load_split(config.data, "val")
   logging.info("data: %d train / %d val scenes from %s", len(train_scenes), len(val_scenes),
                config.data.root)
-  ckpt_lib.save_config(config, workdir)
 
   mesh = step_lib.make_mesh()
   n_dev = mesh.devices.size
@@ -224,6 +232,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
       novel_ray_prob=config.data.novel_ray_prob, seed=config.seed,
       ray_sampling=config.data.ray_sampling, contrast_mix=config.data.contrast_mix)
   on_device = _check_sampler(config, train_scenes)
+  ckpt_lib.save_config(config, workdir, step=_latest_step(workdir))
   model = model_lib.build_model(config)
   key = jax.random.key(config.seed, impl=config.train.prng_impl)
   state = step_lib.init_state(model, config, sampler.batch(0), jax.random.fold_in(key, 0))

@@ -168,6 +168,17 @@ def test_resume_after_interrupt_is_exact(tmp_path, monkeypatch):
   config.train.num_steps = 6
   _straight_and_interrupted_runs(config, tmp_path, monkeypatch, "make_train_step")
 
+  # Resuming with another learning rate keeps the record of the first one.
+  changed = load_config_with(config)
+  changed.train.base_lr = config.train.base_lr * 0.5
+  train.train_and_evaluate(changed, str(tmp_path / "straight"))
+  with open(tmp_path / "straight" / "config_history.jsonl") as f:
+    history = [json.loads(line) for line in f]
+  assert [(h["step"], h["changes"]) for h in history] == [
+      (6, {"train.base_lr": [config.train.base_lr, changed.train.base_lr]})]
+  with open(tmp_path / "straight" / "config.json") as f:
+    assert json.load(f)["train"]["base_lr"] == changed.train.base_lr
+
 
 @pytest.mark.slow
 def test_device_sampled_run_resumes_exactly_and_records_its_clock(tmp_path, monkeypatch):
@@ -200,6 +211,10 @@ def test_sampler_settings_are_checked_before_training(tmp_path):
   config.data.sampler = "disk"
   with pytest.raises(ValueError, match="data.sampler is 'disk'"):
     train.train_and_evaluate(config, str(tmp_path / "c"))
+  assert not os.listdir(tmp_path)  # no run folder is created for a config that cannot train
+  (tmp_path / "file").write_text("")
+  with pytest.raises(FileExistsError, match="file: exists and is not a directory"):
+    train.train_and_evaluate(load_config(), str(tmp_path / "file"))
 
 
 def load_config_with(config):
