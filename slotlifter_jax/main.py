@@ -47,11 +47,17 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
   _quiet_orbax()
+  try:  # ml_collections defers a config file's load error to the first access
+    FLAGS.config.keys()
+  except Exception as e:  # noqa: BLE001
+    sys.exit(f"error: --config={FLAGS['config'].config_filename}: cannot be loaded ({_one_line(e)})")
   import jax
   if FLAGS.distributed:
     jax.distributed.initialize()
   logging.info("JAX devices: %s (process %d of %d); %s", jax.devices(), jax.process_index(),
                jax.process_count(), runtime.describe())
+  from slotlifter_jax import checkpoints
+  from slotlifter_jax.data.types import DataError
   if FLAGS.mode == "train":
     from slotlifter_jax import train
     try:
@@ -60,9 +66,11 @@ def main(argv):
       # Not a success: a script chaining `train && eval` must not go on.
       logging.warning("%s", e)
       sys.exit(128 + e.signum)
+    except (train.ConfigError, checkpoints.CheckpointMismatchError, DataError,
+            FileExistsError) as e:
+      sys.exit(f"error ({type(e).__name__}): {e}")
     return
-  from slotlifter_jax import checkpoints, evaluate, render_mode
-  from slotlifter_jax.data.types import DataError
+  from slotlifter_jax import evaluate, render_mode
   try:
     if FLAGS.mode == "eval":
       result = evaluate.evaluate_split(
@@ -82,8 +90,29 @@ def main(argv):
     sys.exit(f"error ({type(e).__name__}): {e}")
 
 
+def _one_line(e: BaseException) -> str:
+  """`e`'s most informative message in one line: ml_collections chains and escapes its messages
+  (an override typo's "Did you mean …" sits in the middle of three)."""
+  chain = [e]
+  while chain[-1].__cause__ is not None or chain[-1].__context__ is not None:
+    chain.append(chain[-1].__cause__ or chain[-1].__context__)
+  clean = lambda x: " ".join(str(x).replace("\\n", " ").replace("\\'", "'").strip("'\"").split())
+  # The innermost message, unless it is ml_collections' bare KeyError behind the "Did you mean".
+  best = next(x for x in reversed(chain) if not (isinstance(x, KeyError) and x is not chain[0]))
+  return f"{type(chain[-1]).__name__}: {clean(best).replace(chr(39) + ' Did you', ' - did you')}"
+
+
+def _parse_flags(argv):
+  """absl's flag parsing, with a bad command line (an unknown variant, an override of a field
+  that does not exist) reported in one line instead of chained tracebacks."""
+  try:
+    return FLAGS(argv)
+  except Exception as e:  # noqa: BLE001 -- everything raised here comes from the command line
+    sys.exit(f"error: bad command line ({_one_line(e)})")
+
+
 if __name__ == "__main__":
   # Before JAX loads: a retaining allocator and XLA's CPU flags (slotlifter_jax/runtime.py).
   runtime.reexec_with_allocator()
   runtime.set_xla_flags()
-  app.run(main)
+  app.run(main, flags_parser=_parse_flags)

@@ -34,6 +34,10 @@ class NonFiniteError(RuntimeError):
   """Too many non-finite steps in a row."""
 
 
+class ConfigError(ValueError):
+  """A config that cannot train: the message names the field and what to do."""
+
+
 class Interrupted(Exception):
   """Training stopped on SIGINT/SIGTERM after checkpointing; the run resumes where it stopped.
   The command line exits with 128 + the signal's number, as a shell does for a killed job."""
@@ -104,23 +108,23 @@ def _check_sampler(config, train_scenes) -> bool:
   """Validates data.sampler, data.curriculum and train.steps_per_dispatch; True for "device"."""
   sampler = config.data.get("sampler", "host")
   if sampler not in SAMPLERS:
-    raise ValueError(f"data.sampler is {sampler!r}; use one of {SAMPLERS}")
+    raise ConfigError(f"data.sampler is {sampler!r}; use one of {SAMPLERS}")
   block = int(config.train.get("steps_per_dispatch", 1))
   curriculum = config.data.get("curriculum", ())
   if sampler == "host":
     if block != 1:
-      raise ValueError(f"train.steps_per_dispatch={block} needs data.sampler=device (the host "
+      raise ConfigError(f"train.steps_per_dispatch={block} needs data.sampler=device (the host "
                        f"sampler feeds one step per dispatch)")
     if curriculum:
-      raise ValueError("data.curriculum needs data.sampler=device")
+      raise ConfigError("data.curriculum needs data.sampler=device")
     return False
   if config.data.ray_sampling != "uniform":
-    raise ValueError(f"data.ray_sampling={config.data.ray_sampling!r} needs data.sampler=host")
+    raise ConfigError(f"data.ray_sampling={config.data.ray_sampling!r} needs data.sampler=host")
   if block < 1:
-    raise ValueError(f"train.steps_per_dispatch is {block}; it must be ≥ 1")
+    raise ConfigError(f"train.steps_per_dispatch is {block}; it must be ≥ 1")
   for field in ("log_every", "eval_every", "checkpoint_every", "num_steps"):
     if int(config.train[field]) % block:
-      raise ValueError(f"train.{field}={config.train[field]} is not a multiple of "
+      raise ConfigError(f"train.{field}={config.train[field]} is not a multiple of "
                        f"train.steps_per_dispatch={block}")
   device_sampler.check_curriculum(curriculum, train_scenes)
   return True
@@ -218,13 +222,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   mesh = step_lib.make_mesh()
   n_dev = mesh.devices.size
   if config.train.batch_scenes % n_dev:
-    raise ValueError(f"train.batch_scenes={config.train.batch_scenes} must be a multiple of the "
+    raise ConfigError(f"train.batch_scenes={config.train.batch_scenes} must be a multiple of the "
                      f"{n_dev} devices")
   if config.train.batch_scenes % config.train.grad_accum_chunks:
-    raise ValueError(f"train.batch_scenes={config.train.batch_scenes} must be a multiple of "
+    raise ConfigError(f"train.batch_scenes={config.train.batch_scenes} must be a multiple of "
                      f"train.grad_accum_chunks={config.train.grad_accum_chunks}")
   if config.train.rays_per_scene % config.train.ray_chunks:
-    raise ValueError(f"train.rays_per_scene={config.train.rays_per_scene} must be a multiple of "
+    raise ConfigError(f"train.rays_per_scene={config.train.rays_per_scene} must be a multiple of "
                      f"train.ray_chunks={config.train.ray_chunks}")
   sampler = pipeline.BatchSampler(
       train_scenes, num_source_views=config.data.num_source_views,

@@ -112,3 +112,27 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
   scenes = next(a.split("=", 1)[1] for a in render if a.startswith("--scenes="))
   for i in scenes.split(","):
     assert os.path.isfile(tmp_path / workdir / "render" / "test" / f"scene_{int(i):04d}_panel.png")
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--config=configs/nonexistent.py"], "--config=configs/nonexistent.py: cannot be loaded"),
+    (["--config=configs/clevr.py:smoke", "--config.train.base_lrr=1"], 'did you mean "base_lr"'),
+    (["--config=configs/clevr.py:nonvariant"], "unknown variant 'nonvariant'"),
+    (["--config=configs/clevr.py:smoke", "--config.data.root=/nonexistent"],
+     "/nonexistent: data.root does not exist"),
+    (["--config=configs/clevr.py:smoke", "--workdir=a_file"], "a_file: exists and is not a directory"),
+])
+def test_a_bad_command_line_gets_one_line_and_creates_nothing(tmp_path, args, message):
+  shutil.copytree(os.path.join(REPO, "configs"), tmp_path / "configs")
+  (tmp_path / "a_file").write_text("keep me")
+  if not any(a.startswith("--workdir=") for a in args):
+    args = args + ["--workdir=runs/new"]
+  proc = subprocess.run([sys.executable, "-m", "slotlifter_jax.main", *args], cwd=tmp_path,
+                        capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 1
+  lines = [l for l in proc.stderr.splitlines() if l and not l[:1] in "IW" or l.startswith("error")]
+  errors = [l for l in lines if l.startswith("error")]
+  assert len(errors) == 1 and message in errors[0], proc.stderr[-3000:]
+  assert "Traceback" not in proc.stderr
+  assert not os.path.exists(tmp_path / "runs")
+  assert (tmp_path / "a_file").read_text() == "keep me"
