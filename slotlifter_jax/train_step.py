@@ -208,14 +208,35 @@ def make_step_fn(model, config, *, key: jax.Array) -> Callable:
   return step
 
 
+class _WithKeys:
+  """`fn(state, data, *keys)` (jitted, lowered or compiled) used as `fn(state, data)`.
+
+  The keys are arguments of the compiled program rather than constants in it, so runs and tests
+  that differ only in their seed share one compilation (and one persistent-cache entry).
+  `.lower(...).compile()` works as on a jitted function, for the benchmarks."""
+
+  def __init__(self, fn, keys: tuple):
+    self._fn, self._keys = fn, keys
+
+  def __call__(self, state, data):
+    return self._fn(state, data, *self._keys)
+
+  def lower(self, state, data):
+    return _WithKeys(self._fn.lower(state, data, *self._keys), self._keys)
+
+  def compile(self):
+    return _WithKeys(self._fn.compile(), self._keys)
+
+  def __getattr__(self, name):  # memory_analysis, cost_analysis, as_text, …
+    return getattr(self._fn, name)
+
+
 def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) -> Callable:
   """Returns step(state, batch) -> (state, metrics), compiled once, state donated.
 
   `key` is the run's base key; the step's keys are fold_in(key, step). With a mesh, the batch is
   sharded over its scene axis along mesh axis 'data' and the state is replicated.
   """
-  # The key is an argument of the compiled program rather than a constant in it, so runs and tests
-  # that differ only in their seed share one compilation (and one persistent-cache entry).
   def keyed(state, batch, key):
     return make_step_fn(model, config, key=key)(state, batch)
   if mesh is None:
@@ -225,7 +246,7 @@ def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) 
     compiled = jax.jit(keyed, donate_argnums=0,
                        in_shardings=(replicated, batch_sharding(mesh), replicated),
                        out_shardings=(replicated, replicated))
-  return lambda state, batch: compiled(state, batch, key)
+  return _WithKeys(compiled, (key,))
 
 
 def make_train_block(model, config, *, key: jax.Array, data_key: jax.Array, num_steps: int,
@@ -244,7 +265,7 @@ def make_train_block(model, config, *, key: jax.Array, data_key: jax.Array, num_
   draw = dict(batch_scenes=int(t.batch_scenes), rays_per_scene=int(t.rays_per_scene),
               novel_ray_prob=float(d.novel_ray_prob))
 
-  def block(state: TrainState, scenes, key, data_key):  # keys as arguments: see make_train_step
+  def block(state: TrainState, scenes, key, data_key):  # keys as arguments: see _WithKeys
     step = make_step_fn(model, config, key=key)
     def body(state, _):
       limit = device_sampler.curriculum_limit(state.step, stages) if stages else None
@@ -264,7 +285,7 @@ def make_train_block(model, config, *, key: jax.Array, data_key: jax.Array, num_
     replicated = NamedSharding(mesh, P())
     compiled = jax.jit(block, donate_argnums=0, in_shardings=(replicated,) * 4,
                        out_shardings=(replicated, replicated))
-  return lambda state, scenes: compiled(state, scenes, key, data_key)
+  return _WithKeys(compiled, (key, data_key))
 
 
 def make_mesh(devices=None) -> Mesh:
