@@ -21,10 +21,10 @@ Configurations (issue #7; every other setting is the paper's, configs/clevr.py):
   paper_batch the paper's 4 scenes × 1024 rays (A's settings), 2 accumulation chunks
   B           64×64, 32 samples, 2 scenes × 256 rays
   quick       configs/clevr.py:quick (what the README's first command trains)
-  fast        configs/clevr.py:fast, the scene-sized model, batches drawn on the device (a call
-              is a block of train.steps_per_dispatch steps; s/step = block time / steps)
-  fast_scan10 fast with 10 steps per dispatch (lax.scan over steps)
-  fast_host   fast's model fed as quick is: host batches, one step per dispatch
+  fast        configs/clevr.py:fast, the scene-sized model (host batches, one step per dispatch)
+  fast_device fast with its batches drawn inside the jitted step (data.sampler=device)
+  fast_scan10 fast_device with 10 steps per dispatch (lax.scan over steps; a call is a block,
+              s/step = block time / 10)
 The batches come from scenes of the embedded generator (two per batch, made in memory), so rays
 and source views look like training data; speed does not depend on the pixel values.
 """
