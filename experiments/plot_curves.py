@@ -33,6 +33,30 @@ def _split(records: list[dict]) -> tuple[list[dict], list[dict]]:
   return [r for r in latest if r["kind"] == "train"], [r for r in latest if r["kind"] == "val"]
 
 
+TABLE = (("keep ratio", "keep_ratio", "{:.2f}"), ("novel PSNR", "psnr_novel", "{:.1f}"),
+         ("attn_fg_ari", "attn_fg_ari", "{:.3f}"), ("FG-ARI", "fg_ari", "{:.3f}"),
+         ("NV-ARI", "nv_ari", "{:.3f}"), ("active slots", "active_slots", "{:.2f}"),
+         ("largest share", "probe_largest_share", "{:.2f}"))
+
+
+def validation_table(records: list[dict]) -> list[str]:
+  """The validations as a markdown table (the README's tables), with the keep ratio of the
+  schedule at that step."""
+  train, val = _split(records)
+  keep = {r["step"]: r.get("keep_ratio") for r in train}
+  c = emergence.curves(records, [key for _, key, _ in TABLE if key != "keep_ratio"])
+  lines = ["| step | wall min | " + " | ".join(name for name, _, _ in TABLE) + " |",
+           "|---" * (len(TABLE) + 2) + "|"]
+  for i, step in enumerate(c["step"]):
+    ratio = keep.get(int(step), min(keep.items(), key=lambda kv: abs(kv[0] - step))[1]
+                     if keep else None)
+    cells = [fmt.format(ratio if key == "keep_ratio" else c[key][i])
+             if (ratio if key == "keep_ratio" else c[key][i]) is not None else ""
+             for _, key, fmt in TABLE]
+    lines.append(f"| {int(step)} | {c['minutes'][i]:.1f} | " + " | ".join(cells) + " |")
+  return lines
+
+
 def read_metrics(run_dir: str) -> tuple[list[dict], list[dict]]:
   """(train, validation) records sorted by step, a resumed run's repeated steps resolved."""
   return _split(_records(run_dir))
@@ -107,7 +131,7 @@ def plot(run_dir: str, out: str) -> None:
   lines = plot_emergence(records, *grid[1])
   fig.tight_layout()
   fig.savefig(out, dpi=80)
-  print("\n".join(lines))
+  print("\n".join(lines + [""] + validation_table(records)))
   print(f"wrote {out}")
 
 
