@@ -1,0 +1,56 @@
+"""Config variants: `fast` cuts the model, not the method; variants compose left to right."""
+
+import importlib.util
+import os
+
+import pytest
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+# What makes the method the paper's: lifting, slot density, masking, loss-relevant switches.
+METHOD_FIELDS = ("model.feature_lifting", "model.density_mode", "model.colour_range",
+                 "train.mask_max", "train.optimizer", "data.num_source_views")
+# The cuts the fast variant's docstring lists, with their values.
+FAST_CUTS = {"model.slot_dim": 64, "model.slot_mlp_dim": 128, "model.point_dim": 32,
+             "model.num_blocks": 2, "model.ffn_dim": 64, "model.colour_hidden": 32,
+             "render.num_samples": 16, "train.batch_scenes": 4, "train.rays_per_scene": 128}
+
+
+def clevr(variant: str):
+  spec = importlib.util.spec_from_file_location("clevr", os.path.join(REPO, "configs", "clevr.py"))
+  module = importlib.util.module_from_spec(spec)
+  spec.loader.exec_module(module)
+  return module.get_config(variant)
+
+
+def field(config, path: str):
+  section, name = path.split(".")
+  return config[section][name]
+
+
+def test_fast_is_the_quick_method_with_the_listed_cuts_only():
+  quick, fast = clevr("quick"), clevr("fast")
+  for path in METHOD_FIELDS:
+    assert field(fast, path) == field(quick, path), path
+  for path, value in FAST_CUTS.items():
+    assert field(fast, path) == value, path
+    assert field(quick, path) != value, f"{path} is not a cut"
+  # Samples only inside the scene's height range, which the CLEVR config states.
+  assert tuple(fast.render.z_bounds) == tuple(fast.data.scene_z_range) != ()
+  assert tuple(quick.render.z_bounds) == ()
+
+
+def test_variants_compose_left_to_right():
+  both = clevr("fast+easy")
+  assert (both.data.min_objects, both.data.max_objects, both.data.object_scale) == (1, 3, 1.6)
+  for path, value in FAST_CUTS.items():
+    assert field(both, path) == value, path
+  # smoke after fast overrides fast's sizes; fast after smoke overrides smoke's.
+  assert clevr("fast+smoke").model.slot_dim == clevr("smoke").model.slot_dim
+  assert clevr("smoke+fast").model.slot_dim == 64
+  assert clevr("easy").model.slot_dim == clevr("").model.slot_dim  # easy changes only the data
+
+
+def test_unknown_variant_is_named():
+  with pytest.raises(ValueError, match="unknown variant 'fsat'"):
+    clevr("fast+fsat")
