@@ -48,11 +48,10 @@ def validation_table(records: list[dict]) -> list[str]:
   lines = ["| step | wall min | " + " | ".join(name for name, _, _ in TABLE) + " |",
            "|---" * (len(TABLE) + 2) + "|"]
   for i, step in enumerate(c["step"]):
-    ratio = keep.get(int(step), min(keep.items(), key=lambda kv: abs(kv[0] - step))[1]
-                     if keep else None)
-    cells = [fmt.format(ratio if key == "keep_ratio" else c[key][i])
-             if (ratio if key == "keep_ratio" else c[key][i]) is not None else ""
-             for _, key, fmt in TABLE]
+    nearest = min(keep, key=lambda s: abs(s - step)) if keep else None
+    values = {key: c[key][i] for _, key, _ in TABLE if key != "keep_ratio"}
+    values["keep_ratio"] = keep.get(nearest)
+    cells = ["" if values[key] is None else fmt.format(values[key]) for _, key, fmt in TABLE]
     lines.append(f"| {int(step)} | {c['minutes'][i]:.1f} | " + " | ".join(cells) + " |")
   return lines
 

@@ -89,6 +89,14 @@ class Checkpoints:
     self.best.close()
 
 
+def latest_step_on_disk(workdir: str) -> int:
+  """The step a resume starts from (0 for a new run), read from the `Checkpoints` layout without
+  opening a manager, which would create the folders."""
+  latest = os.path.join(workdir, "checkpoints", "latest")
+  steps = [int(s) for s in os.listdir(latest) if s.isdigit()] if os.path.isdir(latest) else []
+  return max(steps, default=0)
+
+
 def config_path(workdir: str) -> str:
   return os.path.join(workdir, "config.json")
 

@@ -73,13 +73,6 @@ class _StopFlag:
       signal.signal(s, h)
 
 
-def _latest_step(workdir: str) -> int:
-  """The step a resume starts from (0 for a new run), read without opening a checkpoint manager."""
-  latest = os.path.join(workdir, "checkpoints", "latest")
-  steps = [int(s) for s in os.listdir(latest) if s.isdigit()] if os.path.isdir(latest) else []
-  return max(steps, default=0)
-
-
 class MetricWriter:
   """Metrics as JSON lines (DIR/metrics.jsonl) and TensorBoard events (DIR/tb)."""
 
@@ -236,7 +229,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
       novel_ray_prob=config.data.novel_ray_prob, seed=config.seed,
       ray_sampling=config.data.ray_sampling, contrast_mix=config.data.contrast_mix)
   on_device = _check_sampler(config, train_scenes)
-  ckpt_lib.save_config(config, workdir, step=_latest_step(workdir))
+  ckpt_lib.save_config(config, workdir, step=ckpt_lib.latest_step_on_disk(workdir))
   model = model_lib.build_model(config)
   key = jax.random.key(config.seed, impl=config.train.prng_impl)
   state = step_lib.init_state(model, config, sampler.batch(0), jax.random.fold_in(key, 0))
