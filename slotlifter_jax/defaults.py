@@ -24,6 +24,10 @@ def base_config() -> ml_collections.ConfigDict:
   m.slot_mlp_dim = 1024
   m.slot_eps = 1.0
   m.slot_drop_path = 0.2  # stochastic depth on the slot MLP residual
+  # Not in the paper (which relies on the ray channels of the encoder input for position): add a
+  # learned linear embedding of each feature cell's (x, y, 1−x, 1−y) to the slot attention's
+  # input, as Locatello et al. 2020 do. A probe of issue "Objects emerge on this CPU".
+  m.slot_position_embedding = False
   m.point_dim = 64  # width of the allocation transformer
   m.num_blocks = 4
   m.num_heads = 4

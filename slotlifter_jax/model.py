@@ -48,7 +48,7 @@ from slotlifter_jax import geometry
 from slotlifter_jax import lifting
 from slotlifter_jax import render
 from slotlifter_jax.encoder import ResUNet
-from slotlifter_jax.slot_attention import SlotAttention
+from slotlifter_jax.slot_attention import SlotAttention, position_grid
 
 # Top-level submodules whose parameters follow the "head" learning-rate schedule (docs/method.md §2:
 # colour MLP, lifting Linear, positional Linear); everything else is "backbone". Prefixes, so the
@@ -117,6 +117,9 @@ class SlotLifter(nn.Module):
   slot_mlp_dim: int = 1024
   slot_eps: float = 1.0
   slot_drop_path: float = 0.2
+  # Not the paper's: a learned embedding of each feature cell's (x, y) added to the slot
+  # attention's input only (Locatello et al. 2020's soft position embedding); see defaults.py.
+  slot_position_embedding: bool = False
   # Point decoder (§1.3, §1.4).
   point_dim: int = 64
   num_blocks: int = 4
@@ -152,6 +155,8 @@ class SlotLifter(nn.Module):
     self.slot_attention = SlotAttention(
         num_slots=self.num_slots, slot_dim=self.slot_dim, num_iters=self.slot_iters,
         mlp_dim=self.slot_mlp_dim, eps=self.slot_eps, drop_path_rate=self.slot_drop_path)
+    if self.slot_position_embedding:
+      self.slot_pos_proj = nn.Dense(self.feature_dim, name="slot_pos_proj")
     # xavier-uniform kernels, zero biases: the official `linear` helper.
     dense = lambda name: nn.Dense(self.point_dim, kernel_init=nn.initializers.xavier_uniform(),
                                   name=name)
@@ -184,7 +189,12 @@ class SlotLifter(nn.Module):
                       intrinsics=source_intrinsics)  # [B, V, H, W, 9]
     feats = self.encoder(x.reshape((b * v, height, width, x.shape[-1])))  # [B·V, h, w, D]
     feats = feats.reshape((b, v) + feats.shape[1:])  # [B, V, h, w, D]
-    flat = feats.reshape(b, -1, feats.shape[-1])  # [B, V·h·w, D]: all views together (§1.2)
+    slot_inputs = feats
+    if self.slot_position_embedding:
+      # Where a cell lies in its view, so slot attention can tell apart two objects whose
+      # features match (two red objects); the lifted features stay as the paper's.
+      slot_inputs = feats + self.slot_pos_proj(position_grid(*feats.shape[2:4]))  # [B, V, h, w, D]
+    flat = slot_inputs.reshape(b, -1, feats.shape[-1])  # [B, V·h·w, D]: all views (§1.2)
     result = self.slot_attention(flat, noise_sigma=slot_noise_sigma, train=train)
     return Encoded(features=feats, slots=result.slots, slot_attn=result.attn)
 
@@ -315,6 +325,7 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       slot_mlp_dim=int(m.slot_mlp_dim),
       slot_eps=float(m.slot_eps),
       slot_drop_path=float(m.slot_drop_path),
+      slot_position_embedding=bool(m.get("slot_position_embedding", False)),
       point_dim=int(m.point_dim),
       num_blocks=int(m.num_blocks),
       num_heads=int(m.num_heads),

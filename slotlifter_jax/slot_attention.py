@@ -106,6 +106,14 @@ def _gate_slice_init(stacked_key: Optional[jax.Array], gate: int, num_gates: int
   return init
 
 
+def position_grid(height: int, width: int) -> jax.Array:
+  """[h, w, 4] per feature cell: (x, y, 1 − x, 1 − y), x and y from 0 at the first column/row to
+  1 at the last (the grid of Locatello et al. 2020's soft position embedding)."""
+  y = jnp.linspace(0.0, 1.0, height, dtype=jnp.float32)[:, None] * jnp.ones((1, width))
+  x = jnp.ones((height, 1)) * jnp.linspace(0.0, 1.0, width, dtype=jnp.float32)[None, :]
+  return jnp.stack([x, y, 1.0 - x, 1.0 - y], axis=-1)
+
+
 class SlotGRU(nn.Module):
   """flax's GRUCell with torch's stacked orthogonal initialisation of the recurrent kernels.
 

@@ -420,3 +420,30 @@ def test_z_bounds_that_hold_every_ray_render_as_the_unbounded_grid():
   assert hits.any()
   inside = np.asarray(jnp.all(jnp.abs(height) <= 0.2 + 1e-5, axis=-1))
   np.testing.assert_array_equal(inside[hits], True)
+
+
+def test_slot_position_embedding_adds_a_linear_map_of_the_cell_grid_to_the_slot_inputs():
+  """The option adds Dense((x, y, 1−x, 1−y)) to slot attention's input only: with that Dense
+  zeroed the slots equal the paper model's (same other weights); with it they differ."""
+  from slotlifter_jax.slot_attention import position_grid
+  grid = np.asarray(position_grid(2, 3))  # hand-computed corners and middle
+  np.testing.assert_allclose(grid[0, 0], [0, 0, 1, 1])
+  np.testing.assert_allclose(grid[1, 2], [1, 1, 0, 0])
+  np.testing.assert_allclose(grid[0, 1], [0.5, 0, 0.5, 1])
+
+  inputs = _inputs(1)
+  sources = _sources(inputs)
+  paper, with_pos = _tiny(), _tiny(slot_position_embedding=True)
+  variables = _init(with_pos, inputs)
+  proj = variables["params"]["slot_pos_proj"]
+  assert proj["kernel"].shape == (4, D) and proj["bias"].shape == (D,)
+  without = {"params": {k: v for k, v in variables["params"].items() if k != "slot_pos_proj"}}
+  zeroed = {"params": {**variables["params"],
+                       "slot_pos_proj": jax.tree.map(jnp.zeros_like, proj)}}
+  encode = lambda m, v: jit(lambda: m.apply(v, **sources, train=False, method=m.encode))()
+  ref = encode(paper, without)
+  chex.assert_trees_all_close(encode(with_pos, zeroed).slots, ref.slots, atol=1e-6)
+  moved = encode(with_pos, variables)
+  assert float(jnp.max(jnp.abs(moved.slots - ref.slots))) > 1e-3
+  # The lifted features are the encoder's, untouched by the embedding.
+  chex.assert_trees_all_close(moved.features, ref.features, atol=0)
