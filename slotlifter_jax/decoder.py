@@ -126,6 +126,23 @@ def slot_density(*, logits: jax.Array, weights: jax.Array, log_scale: jax.Array)
   return jnp.exp(log_scale) * jnp.sum(per_slot, axis=-1)
 
 
+def slot_density_shares(*, density: jax.Array, logits: jax.Array, weights: jax.Array,
+                        log_scale: jax.Array, mode: str) -> jax.Array:
+  """Each real slot's share σ_k [..., K] of the density σ [...]; Σ_k σ_k = σ (to rounding).
+
+  "slot": σ_k = exp(s_σ)·W_k·ReLU(A_k), the terms of `slot_density`. "mlp": σ comes from one
+  head, not from the slots, so it is split by the point-slot weights of the real slots,
+  σ_k = σ·W_k / Σ_{j≥1} W_j. What a slot renders alone (`render_mode`) uses these.
+  """
+  real = weights[..., 1:]  # [..., K]
+  if mode == "slot":
+    return jnp.exp(log_scale) * real * jax.nn.relu(logits[..., 1:])
+  if mode == "mlp":
+    total = jnp.maximum(jnp.sum(real, axis=-1, keepdims=True), jnp.finfo(real.dtype).tiny)
+    return density[..., None] * real / total
+  raise ValueError(f"density_mode must be one of {DENSITY_MODES}, got {mode!r}")
+
+
 def mlp_density(*, raw: jax.Array, log_scale: jax.Array) -> jax.Array:
   """σ = exp(s_σ)·softplus(o) ≥ 0 [...] from a density head's output o [..., 1].
 
@@ -265,6 +282,7 @@ class Allocation:
   weights: jax.Array  # [B, R, S, K+1] point-slot weights W (index 0 = empty slot)
   logits: jax.Array  # [B, R, S, K+1] mapping logits A after the locality mask
   density: jax.Array  # [B, R, S] density σ ≥ 0 (slot-based, or the MLP head's)
+  slot_densities: jax.Array  # [B, R, S, K] each real slot's share of σ (`slot_density_shares`)
 
 
 def _empty_slot_init(key, shape, dtype=jnp.float32):
@@ -326,7 +344,10 @@ class SlotDecoder(nn.Module):
       density = mlp_density(raw=raw, log_scale=log_scale)
     else:
       raise ValueError(f"density_mode must be one of {DENSITY_MODES}, got {self.density_mode!r}")
-    return Allocation(features=features, weights=weights, logits=logits, density=density)
+    shares = slot_density_shares(density=density, logits=logits, weights=weights,
+                                 log_scale=log_scale, mode=self.density_mode)
+    return Allocation(features=features, weights=weights, logits=logits, density=density,
+                      slot_densities=shares)
 
 
 class ColourMLP(nn.Module):

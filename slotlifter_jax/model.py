@@ -71,6 +71,10 @@ class RenderOutput:
   point_slot_weights: jax.Array  # [B, R, S, K+1], index 0 = empty slot
   z: jax.Array  # [B, R, S] sample depths
   density: jax.Array  # [B, R, S] density σ (slot-based unless density_mode="mlp")
+  # Per slot and per sample, for rendering each slot alone (render_mode.py); unused outputs of a
+  # jitted training step are dropped by the compiler, so they cost nothing there.
+  slot_density: jax.Array  # [B, R, S, K] each real slot's share of σ; Σ_k = density
+  sample_colour: jax.Array  # [B, R, S, 3] the colour MLP's output per sample
 
 
 @flax.struct.dataclass
@@ -229,7 +233,7 @@ class SlotLifter(nn.Module):
     result = render.volume_render(density=alloc.density, z=z, colour=colour,
                                   slot_weights=alloc.weights, far=self.far,
                                   density_scale=self.density_scale, last_delta=last_delta)
-    return result, alloc
+    return result, alloc, colour
 
   def ray_interval(self, ray_origins: jax.Array, ray_directions: jax.Array):
     """[near, far] of every ray: the config's scalars, or their part inside `z_bounds`."""
@@ -261,17 +265,18 @@ class SlotLifter(nn.Module):
       keep = lifting.sample_ray_keep(key=self.make_rng("mask"), keep_ratio=keep_ratio,
                                      shape=(b, r),
                                      shared_across_batch=self.mask_shared_across_batch)  # [B, R]
-    coarse, alloc = self._render_pass(0, encoded, **sources, **rays, z=z, keep=keep,
-                                      locality=locality, train=train)
+    coarse, alloc, colour = self._render_pass(0, encoded, **sources, **rays, z=z, keep=keep,
+                                              locality=locality, train=train)
     fine = None
     if self.num_fine_samples > 0:
       # Importance samples from the detached coarse weights, merged with the coarse depths.
       z = geometry.fine_depths(z=z, weights=coarse.weights, num_samples=self.num_fine_samples,
                                key=self.make_rng("sample") if train else None)
-      fine, alloc = self._render_pass(1, encoded, **sources, **rays, z=z, keep=keep,
-                                      locality=locality, train=train)
+      fine, alloc, colour = self._render_pass(1, encoded, **sources, **rays, z=z, keep=keep,
+                                              locality=locality, train=train)
     return RenderOutput(coarse=coarse, fine=fine, point_slot_weights=alloc.weights, z=z,
-                        density=alloc.density)
+                        density=alloc.density, slot_density=alloc.slot_densities,
+                        sample_colour=colour)
 
   def render_at_depths(self, encoded: Encoded, *, source_images: jax.Array,
                        source_cam_to_world: jax.Array, source_intrinsics: jax.Array,
@@ -289,13 +294,14 @@ class SlotLifter(nn.Module):
       raise ValueError(f"render_at_depths: the model has a fine pass (num_fine_samples="
                        f"{self.num_fine_samples}); adaptive rendering covers coarse-only models "
                        f"(the synthetic sets) only, render with render.adaptive=False")
-    coarse, alloc = self._render_pass(
+    coarse, alloc, colour = self._render_pass(
         0, encoded, source_images=source_images, source_cam_to_world=source_cam_to_world,
         source_intrinsics=source_intrinsics, ray_origins=ray_origins,
         ray_directions=ray_directions, z=z, keep=None, locality=locality, train=False,
         last_delta=last_delta)
     return RenderOutput(coarse=coarse, fine=None, point_slot_weights=alloc.weights, z=z,
-                        density=alloc.density)
+                        density=alloc.density, slot_density=alloc.slot_densities,
+                        sample_colour=colour)
 
   def __call__(self, *, source_images: jax.Array, source_cam_to_world: jax.Array,
                source_intrinsics: jax.Array, ray_origins: jax.Array, ray_directions: jax.Array,

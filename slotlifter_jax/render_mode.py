@@ -8,9 +8,10 @@ view, columns
   source | truth | [ground-truth mask] | rendering | depth | segmentation overlay | s0 … s(K−1)
 (the K real slots, the empty slot excluded; s0 is the background slot when the locality constraint
 was on). The overlay blends the slot colours (vis.PALETTE mixed by the soft weights) over the
-rendering; "sk" is what slot k renders alone: the volume rendering with the density of every
-other slot zeroed (σ_k = exp(s_σ)·W_k·ReLU(A_k), docs/method.md §1.4, whose sum over k is
-the model's σ) and each sample's colour unchanged. No background colour is added
+rendering; "sk" is what slot k renders alone: the volume rendering with only slot k's share σ_k
+of the density (the model's `RenderOutput.slot_density`: exp(s_σ)·W_k·ReLU(A_k), docs/method.md
+§1.4, or with `model.density_mode = "mlp"` the head's σ split by the weights W_k; Σ_k σ_k = σ)
+and each sample's colour unchanged. No background colour is added
 (docs/method.md §1.5), so what a slot does not hold is black.
 
 DIR/render/<split>/scene_XXXX_orbit.gif shows rendering | segmentation side by side from F cameras
@@ -29,7 +30,6 @@ import math
 import os
 from typing import Optional, Sequence
 
-import flax.struct
 import jax
 import jax.numpy as jnp
 import ml_collections
@@ -38,7 +38,6 @@ from PIL import Image, ImageDraw
 from tqdm import tqdm
 
 from slotlifter_jax import adaptive
-from slotlifter_jax import decoder as decoder_lib
 from slotlifter_jax import evaluate
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import render
@@ -61,76 +60,36 @@ BAR = 3  # pixels of the orbit progress bar
 # ---------------------------------------------------------------------------------------------
 
 
-@flax.struct.dataclass
-class PointOutputs:
-  """The model's rendering of some rays plus the per-sample values of its last pass."""
-  render: model_lib.RenderOutput
-  colour: jax.Array  # [B, R, S, 3] per-sample colour (the model's range: [0, 1] or [−1, 1])
-  logits: jax.Array  # [B, R, S, K+1] mapping logits A (index 0 = empty slot)
-  log_density_scale: jax.Array  # [] s_σ
-
-
-def _last_pass_names(model: model_lib.SlotLifter) -> tuple[str, str]:
-  """Names of the allocation and colour modules of the last pass (model.py's naming)."""
-  suffix = "_fine" if model.num_fine_samples > 0 else ""
-  return f"allocation{suffix}", f"colour_mlp{suffix}"
-
-
-def point_outputs(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded, *,
-                  sources: dict, ray_origins: jax.Array, ray_directions: jax.Array,
-                  z: Optional[jax.Array] = None,
-                  last_delta: Optional[jax.Array] = None) -> PointOutputs:
-  """`model.render_rays` at evaluation, also returning the last pass's per-sample colour and
-  logits (captured from the allocation and colour modules, so nothing is recomputed).
+def render_rays(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded, *,
+                sources: dict, ray_origins: jax.Array, ray_directions: jax.Array,
+                z: Optional[jax.Array] = None,
+                last_delta: Optional[jax.Array] = None) -> model_lib.RenderOutput:
+  """`model.render_rays` at evaluation; with z [B, R, S'] (and last_delta [B, R]) the coarse pass
+  at those depths instead (`model.render_at_depths`, adaptive rendering).
 
   sources: source_images [B, V, H, W, 3] (in the model's colour range), source_cam_to_world,
-  source_intrinsics; rays [B, R, 3]. With z [B, R, S'] (and last_delta [B, R]) the coarse pass at
-  those depths instead (`model.render_at_depths`, adaptive rendering).
+  source_intrinsics; rays [B, R, 3]. The output carries each slot's share of the density and each
+  sample's colour (`RenderOutput.slot_density`, `.sample_colour`) for `render_each_slot`.
   """
-  alloc_name, colour_name = _last_pass_names(model)
-  def wanted(module, method_name):
-    return method_name == "__call__" and module.name in (alloc_name, colour_name)
   if z is None:
     method, extra = model.render_rays, dict(train=False)
   else:
     method, extra = model.render_at_depths, dict(z=z, last_delta=last_delta)
-  out, state = model.apply({"params": params}, encoded, **sources, ray_origins=ray_origins,
-                           ray_directions=ray_directions, method=method,
-                           capture_intermediates=wanted, mutable=["intermediates"], **extra)
-  captured = state["intermediates"]
-  if alloc_name not in captured or colour_name not in captured:
-    raise KeyError(f"model.py no longer names its last pass {alloc_name!r} / {colour_name!r}; "
-                   f"captured {sorted(captured)}")
-  allocation = captured[alloc_name]["__call__"][0]
-  return PointOutputs(render=out, colour=captured[colour_name]["__call__"][0],
-                      logits=allocation.logits,
-                      log_density_scale=params[alloc_name]["log_density_scale"])
+  return model.apply({"params": params}, encoded, **sources, ray_origins=ray_origins,
+                     ray_directions=ray_directions, method=method, **extra)
 
 
-def slot_densities(*, logits: jax.Array, log_scale: jax.Array) -> jax.Array:
-  """Each slot's share of the slot-based density: logits [..., K+1] → σ_k [..., K].
-
-  σ_k = exp(s_σ)·W_k·ReLU(A_k), computed by `decoder.slot_density` with W masked to slot k, so
-  Σ_k σ_k is exactly the model's σ (docs/method.md §1.4).
-  """
-  weights = decoder_lib.point_slot_weights(logits)  # [..., K+1]
-  only = jnp.eye(logits.shape[-1], dtype=weights.dtype)[1:]  # [K, K+1]: slot k alone
-  masked = weights[..., None, :] * only  # [..., K, K+1]
-  return decoder_lib.slot_density(logits=logits[..., None, :], weights=masked,
-                                  log_scale=log_scale)  # [..., K]
-
-
-def render_each_slot(points: PointOutputs, *, far: float, density_scale: float,
+def render_each_slot(out: model_lib.RenderOutput, *, far: float, density_scale: float,
                      last_delta: Optional[jax.Array] = None) -> render.RenderResult:
   """Volume rendering of every slot alone (module docstring): colour [B, R, K, 3], depth [B, R, K].
 
+  out: the model's rendering of the rays (its last pass's per-slot densities and sample colours).
   last_delta: None, or [B, R] the grid δ of the last sample of a window (adaptive rendering).
   """
-  sigma = jnp.moveaxis(slot_densities(logits=points.logits, log_scale=points.log_density_scale),
-                       -1, -2)  # [B, R, K, S]
-  z = jnp.broadcast_to(points.render.z[..., None, :], sigma.shape)  # [B, R, K, S]
-  colour = jnp.broadcast_to(points.colour[..., None, :, :],
-                            sigma.shape + points.colour.shape[-1:])  # [B, R, K, S, 3]
+  sigma = jnp.moveaxis(out.slot_density, -1, -2)  # [B, R, K, S]
+  z = jnp.broadcast_to(out.z[..., None, :], sigma.shape)  # [B, R, K, S]
+  colour = jnp.broadcast_to(out.sample_colour[..., None, :, :],
+                            sigma.shape + out.sample_colour.shape[-1:])  # [B, R, K, S, 3]
   if last_delta is not None:
     last_delta = jnp.broadcast_to(last_delta[..., None], sigma.shape[:-1])  # [B, R, K]
   return render.volume_render(density=sigma, z=z, colour=colour, slot_weights=None, far=far,
@@ -150,10 +109,10 @@ def slot_render_fn(model: model_lib.SlotLifter, params, encoded, sources: dict, 
   """adaptive.RenderFn of the panel's outputs: colour, depth, segmentation, per-slot colours."""
   unit = (lambda c: (c + 1.0) * 0.5) if signed else (lambda c: c)
   def fn(origins, directions, z, last_delta):
-    points = point_outputs(model, params, encoded, sources=sources, ray_origins=origins,
-                           ray_directions=directions, z=z, last_delta=last_delta)
-    final = points.render.coarse
-    slots = render_each_slot(points, far=model.far, density_scale=model.density_scale,
+    out = render_rays(model, params, encoded, sources=sources, ray_origins=origins,
+                      ray_directions=directions, z=z, last_delta=last_delta)
+    final = out.coarse
+    slots = render_each_slot(out, far=model.far, density_scale=model.density_scale,
                              last_delta=last_delta)
     return (unit(final.colour), final.depth, final.segmentation, unit(slots.colour)), final.weights
   return fn
@@ -191,10 +150,10 @@ class SlotRenderer:
 
     @jax.jit
     def render_chunk(params, encoded, sources, origins, directions):
-      points = point_outputs(model, params, encoded, sources=sources, ray_origins=origins,
-                             ray_directions=directions)
-      final = points.render.fine if points.render.fine is not None else points.render.coarse
-      slots = render_each_slot(points, far=model.far, density_scale=model.density_scale)
+      out = render_rays(model, params, encoded, sources=sources, ray_origins=origins,
+                        ray_directions=directions)
+      final = out.fine if out.fine is not None else out.coarse
+      slots = render_each_slot(out, far=model.far, density_scale=model.density_scale)
       unit = (lambda c: (c + 1.0) * 0.5) if self.signed else (lambda c: c)
       return unit(final.colour), final.depth, final.segmentation, unit(slots.colour)
 

@@ -276,3 +276,48 @@ def test_mlp_density_mode_adds_a_head_and_leaves_the_mapping_alone():
   np.testing.assert_allclose(ref.density, slot_formula, rtol=1e-5, atol=1e-7)
   with pytest.raises(ValueError, match="density_mode"):
     _init(_decoder(density_mode="nerf"), feats, slots, points, locality=True, train=False)
+
+
+def test_slot_density_shares_match_numpy_in_both_modes():
+  """Slot mode: the terms exp(s_σ)·W_k·ReLU(A_k) of σ. MLP mode: σ split by W_k / Σ_{j≥1} W_j.
+  Either way the K shares sum to σ, so the per-slot renders of both modes add up to the model."""
+  rng = np.random.default_rng(2)
+  logits = jnp.asarray(rng.normal(size=(2, 7, 11, 6)).astype(np.float32))  # [B, R, S, K+1]
+  weights = dec.point_slot_weights(logits)
+  log_scale = jnp.float32(0.3)
+  a = np.asarray(logits, np.float64)
+  w = np.exp(a - a.max(-1, keepdims=True))
+  w /= w.sum(-1, keepdims=True)
+
+  sigma = dec.slot_density(logits=logits, weights=weights, log_scale=log_scale)
+  shares = dec.slot_density_shares(density=sigma, logits=logits, weights=weights,
+                                   log_scale=log_scale, mode="slot")
+  assert shares.shape == (2, 7, 11, 5)
+  np.testing.assert_allclose(shares, np.exp(0.3) * w[..., 1:] * np.maximum(a[..., 1:], 0),
+                             rtol=1e-5, atol=1e-7)
+  np.testing.assert_allclose(shares.sum(-1), sigma, rtol=1e-5, atol=1e-7)
+
+  head = jnp.asarray(rng.uniform(0.0, 5.0, size=(2, 7, 11)).astype(np.float32))  # any σ ≥ 0
+  shares = dec.slot_density_shares(density=head, logits=logits, weights=weights,
+                                   log_scale=log_scale, mode="mlp")
+  want = np.asarray(head)[..., None] * w[..., 1:] / w[..., 1:].sum(-1, keepdims=True)
+  np.testing.assert_allclose(shares, want, rtol=1e-5, atol=1e-7)
+  np.testing.assert_allclose(shares.sum(-1), head, rtol=1e-5)
+  # A point that only the empty slot takes has no real slot to share σ with: no NaN.
+  only_empty = jnp.asarray([[80.0, -80.0, -80.0]])
+  safe = dec.slot_density_shares(density=jnp.asarray([2.0]), logits=only_empty,
+                                 weights=dec.point_slot_weights(only_empty), log_scale=log_scale,
+                                 mode="mlp")
+  assert np.all(np.isfinite(np.asarray(safe)))
+
+
+def test_the_decoder_returns_shares_that_sum_to_its_density_in_both_modes():
+  feats, slots, points = _inputs(seed=4, scale=1.0)
+  for mode in ("slot", "mlp"):
+    model = _decoder(density_mode=mode)
+    params = _init(model, feats, slots, points, locality=True, train=False)
+    out = jax.jit(lambda v: model.apply(v, feats, slots, points, locality=True,
+                                        train=False))(params)
+    chex.assert_shape(out.slot_densities, (B, R, S, out.weights.shape[-1] - 1))
+    np.testing.assert_allclose(np.asarray(out.slot_densities).sum(-1), out.density, rtol=1e-5,
+                               atol=1e-6, err_msg=mode)

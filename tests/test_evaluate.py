@@ -193,22 +193,6 @@ def test_orbit_circles_z_axis_looking_at_origin():
     assert rot[2, 1] < 0  # the camera's y (down) points against world z (up)
 
 
-def test_slot_densities_sum_to_the_model_density():
-  rng = np.random.default_rng(2)
-  logits = jnp.asarray(rng.normal(size=(2, 7, 11, 6)).astype(np.float32))  # [B, R, S, K+1]
-  log_scale = jnp.float32(0.3)
-  per_slot = render_mode.slot_densities(logits=logits, log_scale=log_scale)
-  assert per_slot.shape == (2, 7, 11, 5)
-  a = np.asarray(logits, np.float64)
-  w = np.exp(a - a.max(-1, keepdims=True))
-  w /= w.sum(-1, keepdims=True)
-  np.testing.assert_allclose(per_slot, np.exp(0.3) * w[..., 1:] * np.maximum(a[..., 1:], 0),
-                             rtol=1e-5, atol=1e-7)
-  total = decoder_lib.slot_density(logits=logits, weights=decoder_lib.point_slot_weights(logits),
-                                   log_scale=log_scale)
-  np.testing.assert_allclose(per_slot.sum(-1), total, rtol=1e-5, atol=1e-7)
-
-
 # ---------------------------------------------------------------------------------------------
 # End to end on a smoke run (one training shared by the tests below)
 # ---------------------------------------------------------------------------------------------
@@ -342,23 +326,21 @@ def test_per_slot_rendering_is_consistent_with_the_model(run_dir):
   dirs /= np.linalg.norm(dirs, axis=-1, keepdims=True)
 
   @jax.jit  # compiled: a quarter of the time of running the model op by op
-  def point_outputs(params):
+  def render_rays(params):
     encoded = model.apply({"params": params}, **sources, train=False, method=model.encode)
-    return render_mode.point_outputs(
+    return render_mode.render_rays(
         model, params, encoded, sources=sources,
         ray_origins=jnp.asarray(np.broadcast_to(centre, (1, 13, 3)), jnp.float32),
         ray_directions=jnp.asarray(dirs, jnp.float32))
 
-  points = point_outputs(run.params)
-  out = points.render
-  # The captured per-sample colour and density are what the model composited.
-  again = render.volume_render(density=out.density, z=out.z, colour=points.colour,
+  out = render_rays(run.params)
+  # The per-sample colour and density the model returns are what it composited.
+  again = render.volume_render(density=out.density, z=out.z, colour=out.sample_colour,
                                slot_weights=out.point_slot_weights, far=model.far,
                                density_scale=model.density_scale)
   np.testing.assert_allclose(again.colour, out.coarse.colour, atol=1e-6)
-  per_slot = render_mode.slot_densities(logits=points.logits, log_scale=points.log_density_scale)
-  np.testing.assert_allclose(per_slot.sum(-1), out.density, rtol=1e-5, atol=1e-6)
-  alone = render_mode.render_each_slot(points, far=model.far, density_scale=model.density_scale)
+  np.testing.assert_allclose(out.slot_density.sum(-1), out.density, rtol=1e-5, atol=1e-6)
+  alone = render_mode.render_each_slot(out, far=model.far, density_scale=model.density_scale)
   assert alone.colour.shape == (1, 13, model.num_slots, 3)
   # A slot alone is never more opaque than all slots together.
   assert np.all(np.asarray(alone.opacity) <= np.asarray(out.coarse.opacity)[..., None] + 1e-6)
