@@ -2,6 +2,7 @@
 
   python experiments/bench.py                         # every configuration below, ~15 min on 2 cores
   python experiments/bench.py --configs=B,quick --steps=10
+  python experiments/bench.py --configs=B,A --allocators=system,mimalloc,tcmalloc
 
 For each configuration, in a fresh process (so its peak memory is its own) that runs exactly what
 `python -m slotlifter_jax.main` runs (same allocator preload, XLA flags, mesh and jitted step):
@@ -13,6 +14,11 @@ For each configuration, in a fresh process (so its peak memory is its own) that 
   - the time to render one full 128×128 view (after its compilation), with the plain renderer.
 Results go to experiments/results/bench_<platform>.json (merged with what is there, so
 configurations can be measured in separate calls) and a table on stdout.
+
+With --allocators every configuration is measured once per allocator (SLOTLIFTER_ALLOCATOR,
+slotlifter_jax/runtime.py: system = glibc malloc, mimalloc from the cmeel-mimalloc wheel, tcmalloc
+or jemalloc where installed), one after the other in the same call, and stored as
+"<config>@<allocator>"; an allocator that is not installed is reported and skipped.
 
 Configurations (issue #7; every other setting is the paper's, configs/clevr.py):
   A           128×128, V = 1, K = 8, 96 samples, 2 scenes × 1024 rays
@@ -58,6 +64,9 @@ flags.DEFINE_list("configs", ["B", "quick", "A", "A_lowmem", "paper_batch"],
 flags.DEFINE_integer("steps", 10, "Timed train steps per configuration (after 2 warm-up steps).")
 flags.DEFINE_integer("render_repeats", 3, "Timed full-view renders per configuration.")
 flags.DEFINE_string("out", os.path.join(REPO, "experiments", "results"), "Results folder.")
+flags.DEFINE_list("allocators", [],
+                  "Measure each configuration under each of these SLOTLIFTER_ALLOCATOR values "
+                  "(e.g. system,mimalloc,tcmalloc); empty: this process's allocator only.")
 flags.DEFINE_string("worker", None, "Internal: measure this one configuration in this process.")
 flags.DEFINE_string("worker_json", None, "Internal: where the worker writes its result.")
 FLAGS = flags.FLAGS
@@ -172,6 +181,7 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
   step_s = statistics.median(times)
   achieved = step_flops / step_s / 1e9
   return dict(
+      allocator=runtime.describe(),
       config=name, image_size=config.data.image_size, num_samples=config.render.num_samples,
       batch_scenes=c.batch_scenes, rays_per_scene=c.rays_per_scene,
       remat_scan=bool(config.model.remat_scan), grad_accum_chunks=int(c.grad_accum_chunks),
@@ -232,24 +242,41 @@ def main(argv):
   if os.path.exists(out_path):
     with open(out_path) as f:
       previous = json.load(f).get("configs", {})
+  for choice in FLAGS.allocators:
+    if choice not in runtime.ALLOCATORS:
+      raise app.UsageError(f"--allocators: unknown {choice!r}; choose from {runtime.ALLOCATORS}")
   rows = []
   for name in FLAGS.configs:
-    print(f"[bench] {name} …", flush=True)
-    with tempfile.TemporaryDirectory() as tmp:
-      result_path = os.path.join(tmp, "result.json")
-      cmd = [sys.executable, os.path.abspath(__file__), f"--worker={name}",
-             f"--worker_json={result_path}", f"--steps={FLAGS.steps}",
-             f"--render_repeats={FLAGS.render_repeats}"]
-      proc = subprocess.run(cmd, env=dict(os.environ))
-      if proc.returncode != 0:
-        print(f"[bench] {name} failed with exit code {proc.returncode}", flush=True)
-        continue
-      with open(result_path) as f:
-        result = json.load(f)
-    result["measured"] = info
-    previous[name] = result
-    rows.append(result)
-    print(_table([result]).splitlines()[-1], flush=True)
+    for choice in FLAGS.allocators or [None]:
+      key = name if choice is None else f"{name}@{choice}"
+      env = dict(os.environ)
+      if choice is not None:
+        try:
+          runtime.allocator_env(choice)
+        except RuntimeError as e:
+          print(f"[bench] {key}: skipped ({e})", flush=True)
+          continue
+        # A fresh worker picks its own allocator: drop what this process was preloaded with.
+        for var in ("LD_PRELOAD", "MALLOC_CONF", runtime.MARK, *runtime.MIMALLOC_ENV):
+          env.pop(var, None)
+        env[runtime.ENV] = choice
+      print(f"[bench] {key} …", flush=True)
+      with tempfile.TemporaryDirectory() as tmp:
+        result_path = os.path.join(tmp, "result.json")
+        cmd = [sys.executable, os.path.abspath(__file__), f"--worker={name}",
+               f"--worker_json={result_path}", f"--steps={FLAGS.steps}",
+               f"--render_repeats={FLAGS.render_repeats}"]
+        proc = subprocess.run(cmd, env=env)
+        if proc.returncode != 0:
+          print(f"[bench] {key} failed with exit code {proc.returncode}", flush=True)
+          continue
+        with open(result_path) as f:
+          result = json.load(f)
+      result["config"] = key
+      result["measured"] = dict(info, allocator=result.get("allocator", info["allocator"]))
+      previous[key] = result
+      rows.append(result)
+      print(_table([result]).splitlines()[-1], flush=True)
   # Write next to, then over, the old file: an interrupted run never leaves half a JSON.
   tmp_path = out_path + ".tmp"
   with open(tmp_path, "w") as f:

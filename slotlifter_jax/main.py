@@ -56,6 +56,9 @@ def main(argv):
     jax.distributed.initialize()
   logging.info("JAX devices: %s (process %d of %d); %s", jax.devices(), jax.process_index(),
                jax.process_count(), runtime.describe())
+  warning = runtime.slow_allocator_warning()
+  if warning and jax.default_backend() == "cpu":
+    logging.warning("%s", warning)
   from slotlifter_jax import checkpoints
   from slotlifter_jax.data.types import DataError
   if FLAGS.mode == "train":

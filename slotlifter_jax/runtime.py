@@ -7,11 +7,14 @@ a 2-core CPU (docs/performance.md §1).
 The allocator can only be swapped at exec time, so `main` and the benchmark re-execute themselves
 once with LD_PRELOAD set. Nothing here changes results, only speed and memory.
 
-SLOTLIFTER_ALLOCATOR picks it: "auto" (default: tcmalloc, else jemalloc, else the system one),
-"tcmalloc", "jemalloc" or "system" (no preload). tcmalloc comes first because it reuses the freed
-temp buffer: on the paper-sized step (experiments/bench.py config A, 9.6 GB of XLA temp) jemalloc
-with decay off kept mapping fresh buffers until the benchmark was OOM-killed, tcmalloc did not
-(`experiments/rss_per_step.py`; figures in experiments/README.md).
+SLOTLIFTER_ALLOCATOR picks it: "auto" (default: the first of AUTO_ORDER that is installed, else
+the system one), "tcmalloc", "mimalloc", "jemalloc" or "system" (no preload). tcmalloc comes first
+because it reuses the freed temp buffer: on the paper-sized step (experiments/bench.py config A,
+9.6 GB of XLA temp) jemalloc with decay off kept mapping fresh buffers until the benchmark was
+OOM-killed, tcmalloc did not (`experiments/rss_per_step.py`; figures in experiments/README.md).
+mimalloc is what a fresh machine has: the `cmeel-mimalloc` wheel, a dependency of this package,
+ships it inside the virtual environment, so `pip install` alone gives a retaining allocator
+(`python experiments/bench.py --allocators=system,mimalloc,tcmalloc` compares them).
 """
 
 from __future__ import annotations
@@ -19,30 +22,45 @@ from __future__ import annotations
 import glob
 import os
 import sys
+import sysconfig
 
 ENV = "SLOTLIFTER_ALLOCATOR"
-_MARK = "SLOTLIFTER_ALLOCATOR_APPLIED"
+MARK = "SLOTLIFTER_ALLOCATOR_APPLIED"  # set in the re-executed process
 
 _CANDIDATES = {
     "jemalloc": ("libjemalloc.so.2", "libjemalloc.so"),
     "tcmalloc": ("libtcmalloc_minimal.so.4", "libtcmalloc.so.4", "libtcmalloc_minimal.so"),
+    "mimalloc": ("libmimalloc.so.3", "libmimalloc.so.2", "libmimalloc.so"),
 }
+AUTO_ORDER = ("tcmalloc", "mimalloc", "jemalloc")
+ALLOCATORS = ("auto",) + AUTO_ORDER + ("system",)
 _LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
              "/usr/local/lib", "/opt/homebrew/lib")
 
 # jemalloc keeps freed pages (no decay) so the next step's temp buffer is served without faults;
 # background threads would only compete for the two cores.
 JEMALLOC_CONF = "dirty_decay_ms:-1,muzzy_decay_ms:-1,background_thread:false"
+# The same for mimalloc: never purge (return to the OS) freed pages, so the next step's temp
+# buffer is served from memory already mapped.
+MIMALLOC_ENV = {"MIMALLOC_PURGE_DELAY": "-1"}
 
 # The default XLA:CPU scheduler overlaps independent ops at the cost of more temp memory on the
 # paper-sized step, for no measured speed (docs/performance.md §2).
 XLA_CPU_FLAGS = ("--xla_cpu_enable_concurrency_optimized_scheduler=false",)
 
 
+def _lib_dirs() -> tuple[str, ...]:
+  """The system library folders, then the library folder of wheels in this environment (the
+  cmeel wheels install into site-packages/cmeel.prefix/lib)."""
+  wheel_dirs = {os.path.join(sysconfig.get_paths()[k], "cmeel.prefix", "lib")
+                for k in ("purelib", "platlib")}
+  return _LIB_DIRS + tuple(sorted(wheel_dirs))
+
+
 def find_allocator(name: str) -> str | None:
   """Path of the shared library of allocator `name`, or None when it is not installed."""
   for lib in _CANDIDATES[name]:
-    for d in _LIB_DIRS:
+    for d in _lib_dirs():
       hits = sorted(glob.glob(os.path.join(d, lib)))
       if hits:
         return hits[0]
@@ -52,21 +70,24 @@ def find_allocator(name: str) -> str | None:
 def allocator_env(choice: str | None = None) -> dict[str, str]:
   """The environment variables that preload the chosen allocator (empty for "system")."""
   choice = (choice or os.environ.get(ENV, "auto")).lower()
-  if choice not in ("auto", "jemalloc", "tcmalloc", "system"):
-    raise ValueError(f"{ENV}={choice!r}: use auto, jemalloc, tcmalloc or system")
+  if choice not in ALLOCATORS:
+    raise ValueError(f"{ENV}={choice!r}: use one of {', '.join(ALLOCATORS)}")
   if choice == "system":
     return {}
-  names = ("tcmalloc", "jemalloc") if choice == "auto" else (choice,)
+  names = AUTO_ORDER if choice == "auto" else (choice,)
   for name in names:
     path = find_allocator(name)
     if path:
       env = {"LD_PRELOAD": path}
       if name == "jemalloc":
         env["MALLOC_CONF"] = JEMALLOC_CONF
+      if name == "mimalloc":
+        env.update(MIMALLOC_ENV)
       return env
   if choice != "auto":
-    raise RuntimeError(f"{ENV}={choice}: lib{choice} not found in {', '.join(_LIB_DIRS)} "
-                       f"(Debian/Ubuntu: apt install libjemalloc2 or libtcmalloc-minimal4)")
+    raise RuntimeError(f"{ENV}={choice}: lib{choice} not found in {', '.join(_lib_dirs())} "
+                       f"(pip install cmeel-mimalloc; Debian/Ubuntu: apt install "
+                       f"libtcmalloc-minimal4 or libjemalloc2)")
   return {}
 
 
@@ -86,7 +107,7 @@ def reexec_with_allocator(argv: list[str] | None = None) -> None:
   arguments). Does nothing when the allocator is already loaded, when JAX is already imported
   (its allocator choice is fixed by then), or when no allocator library is installed.
   """
-  if os.environ.get(_MARK) or "jax" in sys.modules:
+  if os.environ.get(MARK) or "jax" in sys.modules:
     return
   env = allocator_env()
   preload = env.get("LD_PRELOAD")
@@ -95,7 +116,7 @@ def reexec_with_allocator(argv: list[str] | None = None) -> None:
   new_env = dict(os.environ)
   new_env.update(env)
   new_env["LD_PRELOAD"] = " ".join(p for p in (preload, os.environ.get("LD_PRELOAD", "")) if p)
-  new_env[_MARK] = preload
+  new_env[MARK] = preload
   if argv is None:
     main_module = sys.modules["__main__"]
     spec = getattr(main_module, "__spec__", None)
@@ -108,7 +129,23 @@ def reexec_with_allocator(argv: list[str] | None = None) -> None:
   os.execve(sys.executable, argv, new_env)
 
 
+def loaded_allocator() -> str | None:
+  """The preloaded allocator library's file name, or None for the system malloc."""
+  loaded = os.environ.get(MARK) or os.environ.get("LD_PRELOAD", "")
+  return os.path.basename(loaded.split()[0]) if loaded.strip() else None
+
+
 def describe() -> str:
   """One line for the log: which allocator this process runs with."""
-  loaded = os.environ.get(_MARK) or os.environ.get("LD_PRELOAD", "")
-  return f"allocator: {os.path.basename(loaded) if loaded else 'system malloc'}"
+  return f"allocator: {loaded_allocator() or 'system malloc'}"
+
+
+def slow_allocator_warning() -> str | None:
+  """A warning for the log when no retaining allocator is loaded (None when one is)."""
+  if loaded_allocator():
+    return None
+  how = ("SLOTLIFTER_ALLOCATOR=system is set" if os.environ.get(ENV, "").lower() == "system"
+         else "none of tcmalloc, mimalloc, jemalloc was found")
+  return (f"running on the system malloc ({how}): XLA:CPU maps its per-step temp buffer afresh "
+          f"every step, so training runs markedly slower (docs/performance.md §1); "
+          f"`pip install cmeel-mimalloc` or `apt install libtcmalloc-minimal4` fixes it")

@@ -13,18 +13,44 @@ def test_system_allocator_means_no_preload():
 
 def test_unknown_allocator_is_a_clear_error():
   with pytest.raises(ValueError, match="SLOTLIFTER_ALLOCATOR"):
-    runtime.allocator_env("mimalloc")
+    runtime.allocator_env("ptmalloc3")
 
 
 def test_named_allocator_points_at_an_existing_library_or_explains():
-  for name in ("jemalloc", "tcmalloc"):
+  for name in ("jemalloc", "tcmalloc", "mimalloc"):
     path = runtime.find_allocator(name)
     if path is None:
-      with pytest.raises(RuntimeError, match="apt install"):
+      with pytest.raises(RuntimeError, match="pip install cmeel-mimalloc"):
         runtime.allocator_env(name)
     else:
       env = runtime.allocator_env(name)
       assert env["LD_PRELOAD"] == path and os.path.exists(path)
+      if name == "mimalloc":  # configured to keep freed pages, as jemalloc's decay is turned off
+        assert env["MIMALLOC_PURGE_DELAY"] == "-1"
+
+
+def test_a_wheel_installed_mimalloc_is_found(tmp_path, monkeypatch):
+  """The cmeel wheel puts the library under site-packages/cmeel.prefix/lib; that is searched."""
+  lib_dir = tmp_path / "site" / "cmeel.prefix" / "lib"
+  lib_dir.mkdir(parents=True)
+  (lib_dir / "libmimalloc.so.3").write_bytes(b"")
+  monkeypatch.setattr(runtime, "_LIB_DIRS", ())
+  monkeypatch.setattr(runtime.sysconfig, "get_paths",
+                      lambda: {"purelib": str(tmp_path / "site"), "platlib": str(tmp_path / "site")})
+  assert runtime.find_allocator("mimalloc") == str(lib_dir / "libmimalloc.so.3")
+  assert runtime.find_allocator("tcmalloc") is None
+
+
+def test_the_system_malloc_is_warned_about_and_a_preloaded_one_is_not(monkeypatch):
+  monkeypatch.delenv("SLOTLIFTER_ALLOCATOR_APPLIED", raising=False)
+  monkeypatch.delenv("LD_PRELOAD", raising=False)
+  monkeypatch.setenv("SLOTLIFTER_ALLOCATOR", "system")
+  warning = runtime.slow_allocator_warning()
+  assert "SLOTLIFTER_ALLOCATOR=system" in warning and "cmeel-mimalloc" in warning
+  assert runtime.describe() == "allocator: system malloc"
+  monkeypatch.setenv("LD_PRELOAD", "/usr/lib/libtcmalloc_minimal.so.4 /other/lib.so")
+  assert runtime.slow_allocator_warning() is None
+  assert runtime.describe() == "allocator: libtcmalloc_minimal.so.4"
 
 
 def test_xla_flags_added_once_and_user_values_kept():
