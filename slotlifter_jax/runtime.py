@@ -20,6 +20,7 @@ ships it inside the virtual environment, so `pip install` alone gives a retainin
 from __future__ import annotations
 
 import glob
+import importlib.util
 import os
 import sys
 import sysconfig
@@ -91,8 +92,41 @@ def allocator_env(choice: str | None = None) -> dict[str, str]:
   return {}
 
 
+# JAX's GPU plugins (the `cuda` extra installs the CUDA 12 one) and the device files their
+# drivers create; a plugin without a device falls back to the CPU.
+_GPU_PLUGINS = ("jax_cuda12_plugin", "jax_cuda13_plugin", "jax_rocm60_plugin", "jax_rocm7_plugin")
+_GPU_DEVICE_FILES = ("/dev/nvidia0", "/dev/nvidiactl", "/dev/kfd")
+
+
+def expected_backend(environ=os.environ, *, find_spec=importlib.util.find_spec,
+                     exists=os.path.exists) -> str:
+  """"cpu", "gpu" or "tpu": the backend JAX will start, decided before JAX is imported (the
+  allocator can only be chosen then). JAX_PLATFORMS wins when set; else a GPU plugin with a GPU
+  device means "gpu", libtpu means "tpu", anything else "cpu"."""
+  platforms = environ.get("JAX_PLATFORMS", "").strip().lower()
+  if platforms:
+    first = platforms.split(",")[0].strip()
+    return "gpu" if first in ("cuda", "rocm", "gpu") else first
+  if any(_spec(find_spec, m) for m in _GPU_PLUGINS) and any(exists(f) for f in _GPU_DEVICE_FILES):
+    return "gpu"
+  if _spec(find_spec, "libtpu"):
+    return "tpu"
+  return "cpu"
+
+
+def _spec(find_spec, name: str):
+  try:
+    return find_spec(name)
+  except (ImportError, ValueError):
+    return None
+
+
 def set_xla_flags(environ=os.environ) -> None:
-  """Adds XLA_CPU_FLAGS to XLA_FLAGS unless the user already set them (call before importing jax)."""
+  """Adds XLA_CPU_FLAGS to XLA_FLAGS unless the user already set them (call before importing jax).
+
+  Only for the CPU backend: on a GPU or TPU the flags would be inert, and are left out."""
+  if expected_backend(environ) != "cpu":
+    return
   flags = environ.get("XLA_FLAGS", "")
   for flag in XLA_CPU_FLAGS:
     if flag.split("=")[0] not in flags:
@@ -105,9 +139,11 @@ def reexec_with_allocator(argv: list[str] | None = None) -> None:
 
   `argv` is the command to run again (default: `python -m <this __main__ module>` with the same
   arguments). Does nothing when the allocator is already loaded, when JAX is already imported
-  (its allocator choice is fixed by then), or when no allocator library is installed.
+  (its allocator choice is fixed by then), when JAX will not run on the CPU (a GPU keeps its
+  buffers in device memory, so the host allocator does not pace a step), or when no allocator
+  library is installed.
   """
-  if os.environ.get(MARK) or "jax" in sys.modules:
+  if os.environ.get(MARK) or "jax" in sys.modules or expected_backend() != "cpu":
     return
   env = allocator_env()
   preload = env.get("LD_PRELOAD")

@@ -69,3 +69,35 @@ def test_no_reexec_once_jax_is_loaded(monkeypatch):
   import jax  # noqa: F401  (the allocator of a running JAX process cannot change)
   monkeypatch.setattr(os, "execve", lambda *a: pytest.fail("must not re-exec"))
   runtime.reexec_with_allocator()
+
+
+def test_the_backend_is_decided_before_jax_starts():
+  none = lambda name: None
+  has_cuda = lambda name: object() if name == "jax_cuda12_plugin" else None
+  gpu_files = lambda path: path == "/dev/nvidia0"
+  assert runtime.expected_backend({}, find_spec=none, exists=gpu_files) == "cpu"
+  assert runtime.expected_backend({}, find_spec=has_cuda, exists=gpu_files) == "gpu"
+  # The plugin installed on a machine without a GPU: JAX falls back to the CPU.
+  assert runtime.expected_backend({}, find_spec=has_cuda, exists=lambda p: False) == "cpu"
+  assert runtime.expected_backend({"JAX_PLATFORMS": "cuda"}, find_spec=none) == "gpu"
+  assert runtime.expected_backend({"JAX_PLATFORMS": "cpu"}, find_spec=has_cuda,
+                                  exists=gpu_files) == "cpu"
+  assert runtime.expected_backend({"JAX_PLATFORMS": "tpu,cpu"}, find_spec=none) == "tpu"
+  assert runtime.expected_backend({}, find_spec=lambda n: object() if n == "libtpu" else None,
+                                  exists=lambda p: False) == "tpu"
+
+
+def test_cpu_flags_and_allocator_only_for_the_cpu_backend(monkeypatch):
+  gpu = {"JAX_PLATFORMS": "cuda"}
+  runtime.set_xla_flags(gpu)
+  assert "XLA_FLAGS" not in gpu
+  cpu = {"JAX_PLATFORMS": "cpu"}
+  runtime.set_xla_flags(cpu)
+  assert runtime.XLA_CPU_FLAGS[0] in cpu["XLA_FLAGS"]
+  # No re-exec on a GPU backend even before JAX is imported.
+  monkeypatch.setenv("JAX_PLATFORMS", "cuda")
+  monkeypatch.delenv(runtime.MARK, raising=False)
+  monkeypatch.setattr(runtime.sys, "modules", {k: v for k, v in runtime.sys.modules.items()
+                                               if k != "jax"})
+  monkeypatch.setattr(os, "execve", lambda *a: pytest.fail("must not re-exec on a GPU"))
+  runtime.reexec_with_allocator()
