@@ -43,7 +43,7 @@ from slotlifter_jax import model as model_lib
 from slotlifter_jax import render
 from slotlifter_jax import render_views
 from slotlifter_jax import vis
-from slotlifter_jax.data import generator
+from slotlifter_jax.data import cameras
 from slotlifter_jax.data.types import Scene
 
 MAX_ORBIT_FRAMES = 64  # keeps a GIF at 128×128 well under a few MB
@@ -219,7 +219,7 @@ def orbit_cam_to_world(*, source_cam_to_world: np.ndarray, num_frames: int) -> n
   azimuth = math.atan2(eye[1], eye[0]) + 2.0 * np.pi * np.arange(num_frames) / num_frames  # [F]
   eyes = np.stack([radius * np.cos(azimuth), radius * np.sin(azimuth),
                    np.full(num_frames, eye[2])], axis=-1)  # [F, 3]
-  return np.stack([generator.look_at_cam_to_world(e) for e in eyes])  # [F, 4, 4]
+  return np.stack([cameras.look_at_cam_to_world(e) for e in eyes])  # [F, 4, 4]
 
 
 def overlay(*, rendering: np.ndarray, segmentation: np.ndarray) -> np.ndarray:

@@ -76,6 +76,32 @@ def test_official_principal_point_flag(tmp_path):
                                  official_principal_point=True)[0, 2] == pytest.approx(63.75)
 
 
+def test_look_at_cam_to_world_sees_the_target_upright():
+  rng = np.random.default_rng(0)
+  k = cameras.uorf_intrinsics(height=64, width=64)
+  for _ in range(20):
+    eye, target = rng.uniform(-10, 10, size=3), rng.uniform(-1, 1, size=3)
+    pose = cameras.look_at_cam_to_world(eye, target)
+    cameras.check_pose(pose, source="look_at")  # rigid, det +1, bottom row (0, 0, 0, 1)
+    np.testing.assert_allclose(pose[:3, 3], eye)
+    assert pose[2, 0] == pytest.approx(0.0, abs=1e-12)  # camera x (right) is horizontal
+    world_to_cam = cameras.rigid_inverse(pose)
+
+    def project(point):
+      p = world_to_cam[:3, :3] @ point + world_to_cam[:3, 3]
+      return (k @ p)[:2] / p[2], p[2]
+
+    # The target lies on the optical axis (the principal point) at its distance, in front.
+    pix, depth = project(target)
+    np.testing.assert_allclose(pix, [31.5, 31.5], atol=1e-9)
+    assert depth == pytest.approx(np.linalg.norm(target - eye))
+    # World up is up in the image: a point above the target has a smaller row.
+    assert project(target + [0.0, 0.0, 0.5])[0][1] < 31.5
+  # The default target is the origin.
+  np.testing.assert_allclose(cameras.look_at_cam_to_world(np.array([3.0, -2.0, 4.0])),
+                             cameras.look_at_cam_to_world(np.array([3.0, -2.0, 4.0]), np.zeros(3)))
+
+
 def test_uorf_background_is_second_smallest_grey(tmp_path):
   folder = tmp_path / "clevr_567_test"
   truth = fx.write_uorf_split(folder, num_scenes=1, size=(7, 7), masks=True,

@@ -1,5 +1,5 @@
 """NumPy camera handling on the data side: pose and intrinsics files, their conventions, projection
-matrix decomposition, nearest-view selection and pixel rays.
+matrix decomposition, look-at poses, nearest-view selection and pixel rays.
 
 Vocabulary: N views of a scene, R rays, H×W stored and h×w delivered image sizes. Conventions are
 the model's (slotlifter_jax/__init__.py, docs/method.md §3.1): `cam_to_world` is a 4×4 OpenCV pose
@@ -85,6 +85,18 @@ def scale_translation(pose: np.ndarray, scene_scale: float) -> np.ndarray:
   out = np.array(pose, dtype=np.float64, copy=True)
   out[..., :3, 3] *= scene_scale
   return out
+
+
+def look_at_cam_to_world(eye: np.ndarray, target: np.ndarray = np.zeros(3)) -> np.ndarray:
+  """OpenCV cam2world [4, 4] (x right, y down, z forward) looking from `eye` at `target`, z up."""
+  forward = target - eye
+  forward = forward / np.linalg.norm(forward)
+  right = np.cross(forward, np.array([0.0, 0.0, 1.0]))
+  right = right / np.linalg.norm(right)
+  down = np.cross(forward, right)
+  m = np.eye(4)
+  m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, down, forward, eye
+  return m
 
 
 def uorf_intrinsics(*, height: int, width: int,

@@ -15,7 +15,9 @@ import os
 import ml_collections
 from absl import logging
 
-SUBSETS = {"clevr": "clevr_567", "room": "room_chair"}
+# layout is the generator's JAX-free part, so this import stays light; the generator itself is
+# imported inside the functions below, only when a set is generated.
+from slotlifter_jax.data.layout import SUBSETS
 
 
 def cache_root() -> str:
