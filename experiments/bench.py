@@ -118,7 +118,7 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
   import jax
   import numpy as np
   from slotlifter_jax import flops as flops_lib
-  from slotlifter_jax import render_views
+  from slotlifter_jax.rendering import views as views_lib
 
   wanted = bench_common.config(name)
   train_scenes = bench_common.scenes(wanted.train.batch_scenes, wanted.data.image_size, seed=0)
@@ -167,7 +167,7 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
   del batches
 
   # One full view at 128×128 through the evaluation renderer (its own compile excluded).
-  renderer = render_views.SceneRenderer(model, config)
+  renderer = views_lib.SceneRenderer(model, config)
   t = time.perf_counter()
   renderer.render(state.params, render_scene, [1]).colour.sum()
   render_first_s = time.perf_counter() - t

@@ -1,5 +1,5 @@
-"""Adaptive full-view rendering (issue #7, slotlifter_jax/adaptive.py): speed against the plain
-path, and quality at that speed on a trained model.
+"""Adaptive full-view rendering (issue #7, slotlifter_jax/rendering/adaptive.py): speed against
+the plain path, and quality at that speed on a trained model.
 
   python experiments/bench_render.py --workdir=runs/clevr_quick   # ~15 min on 2 cores
   python experiments/bench_render.py --scenes=5 --skip_timing --skip_context
@@ -111,7 +111,8 @@ def time_group(name: str, size: int, settings: list[dict], repeats: int) -> list
   """Plain (at each of --plain_chunks) vs adaptive (fallback off) on one view of a generated
   scene, random-init weights; each repeat renders every renderer once, so drift in the machine's
   load hits all alike. Speed-ups are against the fastest plain chunk size."""
-  from slotlifter_jax import adaptive, model as model_lib, render_views
+  from slotlifter_jax import model as model_lib
+  from slotlifter_jax.rendering import adaptive, views as views_lib
   config = bench_common.config(name)
   config.data.image_size = size
   scene = bench_common.scenes(1, size, seed=1)[0]
@@ -121,7 +122,7 @@ def time_group(name: str, size: int, settings: list[dict], repeats: int) -> list
   for chunk in FLAGS.plain_chunks:
     c = config.copy_and_resolve_references()
     c.render.chunk = int(chunk)
-    plains[f"plain/chunk{chunk}"] = render_views.SceneRenderer(model, c)
+    plains[f"plain/chunk{chunk}"] = views_lib.SceneRenderer(model, c)
   fixed = [_setting(**dict((k, s[k]) for k in ("stride", "window", "eps")), fallback=False)
            for s in settings]
   renderers = dict(plains, **{f["name"]: adaptive.AdaptiveSceneRenderer(
@@ -164,13 +165,14 @@ def time_group(name: str, size: int, settings: list[dict], repeats: int) -> list
 
 def quality(settings: list[dict]) -> dict:
   import numpy as np
-  from slotlifter_jax import adaptive, evaluate, metrics, render_views
+  from slotlifter_jax import evaluate, metrics
+  from slotlifter_jax.rendering import adaptive, views as views_lib
   sys.path.insert(0, os.path.join(REPO, "configs"))
   import clevr  # configs/clevr.py
   config = clevr.get_config("quick")
   run = evaluate.load_run(config, FLAGS.workdir, split="test", checkpoint=FLAGS.checkpoint,
                           max_scenes=FLAGS.scenes)
-  plain = render_views.SceneRenderer(run.model, run.config)
+  plain = views_lib.SceneRenderer(run.model, run.config)
   renderers = [adaptive.AdaptiveSceneRenderer(run.model, _with_adaptive(run.config, s))
                for s in settings]
   names = ["plain"] + [s["name"] for s in settings]
@@ -237,7 +239,8 @@ def context(windows: list[int]) -> dict:
   """Part 3 of the module docstring."""
   import jax
   import numpy as np
-  from slotlifter_jax import adaptive, evaluate, render_views
+  from slotlifter_jax import evaluate
+  from slotlifter_jax.rendering import adaptive, views as views_lib
   sys.path.insert(0, os.path.join(REPO, "configs"))
   import clevr  # configs/clevr.py
   run = evaluate.load_run(clevr.get_config("quick"), FLAGS.workdir, split="test",
@@ -259,10 +262,10 @@ def context(windows: list[int]) -> dict:
                                   grid=grid, window=window)
     return f
 
-  encode = render_views.make_encode(model)
+  encode = views_lib.make_encode(model)
   stats = {w: dict(fits=[], err=[], argmax=[]) for w in windows}
   for scene in run.scenes:
-    sources = render_views.scene_sources(scene, signed=False)
+    sources = views_lib.scene_sources(scene, signed=False)
     encoded = encode(params, sources)
     height, width = scene.image_size
     for v in scene.novel_indices:

@@ -17,10 +17,10 @@ import numpy as np
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import geometry
 from slotlifter_jax import model as model_lib
-from slotlifter_jax import render_views
 from slotlifter_jax import train_step as step_lib
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import registry
+from slotlifter_jax.rendering import views as views_lib
 
 
 def load_config(arg: str):
@@ -41,7 +41,7 @@ def main(config_arg: str, run_dir: str, scene_index: int = 0, split: str = "val"
   state = manager.restore(abstract)
   manager.close()
   params, view = state.params, scene.novel_indices[0]
-  renderer = render_views.SceneRenderer(model, config)
+  renderer = views_lib.SceneRenderer(model, config)
   np.set_printoptions(precision=3, suppress=True, linewidth=200)
   print(f"step {int(state.step)}, scene {scene.name}, view {view}, near {config.render.near:.3f}")
   for locality in (True, False):

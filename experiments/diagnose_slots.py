@@ -90,7 +90,7 @@ def main(argv=None) -> None:
   from slotlifter_jax import checkpoints as ckpt_lib
   from slotlifter_jax import evaluate
   from slotlifter_jax import metrics
-  from slotlifter_jax import render_views
+  from slotlifter_jax.rendering import views as views_lib
 
   saved = ckpt_lib.load_saved_config(args.workdir)
   if saved is None:
@@ -98,13 +98,13 @@ def main(argv=None) -> None:
                      f"training run directory")
   run = evaluate.load_run(ml_collections.ConfigDict(saved), args.workdir, split=args.split,
                           checkpoint=args.checkpoint, max_scenes=args.scenes)
-  encode = render_views.make_encode(run.model)
+  encode = views_lib.make_encode(run.model)
   signed = run.config.model.colour_range == "signed"
   fg_ari, ari, used, slot_cos, key_cos, ceiling, kmeans = [], [], [], [], [], [], []
   for scene in run.scenes:
     idx = np.asarray(scene.source_indices)
-    encoded = encode(run.params, render_views.scene_sources(scene, signed=signed))
-    labels = render_views.source_attention_labels(encoded, scene.image_size)[0]  # first source
+    encoded = encode(run.params, views_lib.scene_sources(scene, signed=signed))
+    labels = views_lib.source_attention_labels(encoded, scene.image_size)[0]  # first source
     share = np.bincount(labels.ravel(), minlength=encoded.slots.shape[1]) / labels.size
     used.append(float((share >= 0.01).sum()))
     if scene.masks is not None:

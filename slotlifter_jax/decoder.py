@@ -132,7 +132,7 @@ def slot_density_shares(*, density: jax.Array, logits: jax.Array, weights: jax.A
 
   "slot": σ_k = exp(s_σ)·W_k·ReLU(A_k), the terms of `slot_density`. "mlp": σ comes from one
   head, not from the slots, so it is split by the point-slot weights of the real slots,
-  σ_k = σ·W_k / Σ_{j≥1} W_j. What a slot renders alone (`render_mode`) uses these.
+  σ_k = σ·W_k / Σ_{j≥1} W_j. What a slot renders alone (`rendering.pictures`) uses these.
   """
   real = weights[..., 1:]  # [..., K]
   if mode == "slot":

@@ -57,7 +57,7 @@ def base_config() -> ml_collections.ConfigDict:
   # horizontal slab (model.SlotLifter.ray_interval). () = all of [near, far] (the paper's).
   r.z_bounds = ()
   r.chunk = 4096  # rays per chunk when rendering a full view
-  # Adaptive full-view rendering in --mode=eval and --mode=render (slotlifter_jax/adaptive.py,
+  # Adaptive full-view rendering in --mode=eval and --mode=render (slotlifter_jax/rendering/adaptive.py,
   # issue #7): the decoder runs the whole grid on every stride-th pixel only and a window of
   # `adaptive_window` grid samples elsewhere. Off: every pixel on the whole grid (exact).
   r.adaptive = False

@@ -4,8 +4,8 @@ point. Validation during training (slotlifter_jax/validation.py) scores with `sc
 Vocabulary (docs/method.md §0): K slots, V source views, H×W image size, n rendered views of a
 scene.
 
-Every view of every scene is rendered at full resolution (`render_views.SceneRenderer`, chunked),
-source views included. Per scene:
+Every view of every scene is rendered at full resolution (`rendering.views.SceneRenderer`,
+chunked), source views included. Per scene:
   source views  PSNR, ARI, FG-ARI, mBO, matched mIoU
   novel views   PSNR, SSIM, LPIPS, NV-ARI, NV-FG-ARI, NV-mBO, NV-mIoU
   all views     slots owning ≥ 1 % of the foreground vs the ground-truth object count
@@ -38,17 +38,17 @@ import numpy as np
 from absl import logging
 from tqdm import tqdm
 
-from slotlifter_jax import adaptive
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import metrics
 from slotlifter_jax import model as model_lib
-from slotlifter_jax import render_views
 from slotlifter_jax.checkpoints import EvalSetupError
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import pipeline
 from slotlifter_jax.data import registry
 from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
+from slotlifter_jax.rendering import adaptive
+from slotlifter_jax.rendering import views as views_lib
 
 # Metric names in the order of the printed table, with the definition written into metrics.json.
 METRIC_DEFINITIONS = {
@@ -106,7 +106,7 @@ def _views_with_mask(scene: Scene, views: np.ndarray) -> np.ndarray:
   return np.asarray(scene.mask_views, bool)[views]
 
 
-def scene_metrics(rendered: render_views.RenderedViews, scene: Scene, view_indices: Sequence[int],
+def scene_metrics(rendered: views_lib.RenderedViews, scene: Scene, view_indices: Sequence[int],
                   *, image_metrics: bool = False, lpips_net: str = "alex",
                   lpips_quirk: bool = False, nv_ari_last_view: bool = False) -> dict[str, float]:
   """The metrics of one scene from its rendered views (module docstring), as {name: float}.

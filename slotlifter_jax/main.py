@@ -73,7 +73,8 @@ def main(argv):
             FileExistsError) as e:
       sys.exit(f"error ({type(e).__name__}): {e}")
     return
-  from slotlifter_jax import evaluate, render_mode
+  from slotlifter_jax import evaluate
+  from slotlifter_jax.rendering import pictures
   try:
     if FLAGS.mode == "eval":
       result = evaluate.evaluate_split(
@@ -82,9 +83,9 @@ def main(argv):
           nv_ari_last_view=FLAGS.nv_ari_last_view)
       print(evaluate.format_table(result))
     else:
-      for files in render_mode.render_scenes(
+      for files in pictures.render_scenes(
           FLAGS.config, FLAGS.workdir, split=FLAGS.split,
-          scene_indices=render_mode.parse_scene_indices(FLAGS.scenes),
+          scene_indices=pictures.parse_scene_indices(FLAGS.scenes),
           checkpoint=FLAGS.checkpoint, num_orbit_frames=FLAGS.orbit_frames):
         print(f"scene {files.scene_index} ({files.scene_name}): {files.panel}\n  {files.orbit}")
   except (evaluate.EvalSetupError, checkpoints.CheckpointMismatchError, DataError,

@@ -46,8 +46,8 @@ import ml_collections
 from slotlifter_jax import decoder as decoder_lib
 from slotlifter_jax import geometry
 from slotlifter_jax import lifting
-from slotlifter_jax import render
 from slotlifter_jax.encoder import ResUNet
+from slotlifter_jax.rendering import volume
 from slotlifter_jax.slot_attention import SlotAttention, position_grid
 
 # Top-level submodules whose parameters follow the "head" learning-rate schedule (docs/method.md §2:
@@ -65,14 +65,14 @@ class Encoded:
 
 @flax.struct.dataclass
 class RenderOutput:
-  coarse: render.RenderResult  # colour [B, R, 3], depth [B, R], segmentation [B, R, K], …
-  fine: Optional[render.RenderResult]  # None without a fine pass
+  coarse: volume.RenderResult  # colour [B, R, 3], depth [B, R], segmentation [B, R, K], …
+  fine: Optional[volume.RenderResult]  # None without a fine pass
   # Of the last pass (the fine one when present, so S is then num_samples + num_fine_samples):
   point_slot_weights: jax.Array  # [B, R, S, K+1], index 0 = empty slot
   z: jax.Array  # [B, R, S] sample depths
   density: jax.Array  # [B, R, S] density σ (slot-based unless density_mode="mlp")
-  # Per slot and per sample, for rendering each slot alone (render_mode.py); unused outputs of a
-  # jitted training step are dropped by the compiler, so they cost nothing there.
+  # Per slot and per sample, for rendering each slot alone (rendering/pictures.py); unused outputs
+  # of a jitted training step are dropped by the compiler, so they cost nothing there.
   slot_density: jax.Array  # [B, R, S, K] each real slot's share of σ; Σ_k = density
   sample_colour: jax.Array  # [B, R, S, 3] the colour MLP's output per sample
 
@@ -230,7 +230,7 @@ class SlotLifter(nn.Module):
     alloc = self.allocations[index](point_features, encoded.slots, points, locality=locality,
                                     train=train)
     colour = self.colour_mlps[index](alloc.features + e_p)  # [B, R, S, 3]
-    result = render.volume_render(density=alloc.density, z=z, colour=colour,
+    result = volume.volume_render(density=alloc.density, z=z, colour=colour,
                                   slot_weights=alloc.weights, far=self.far,
                                   density_scale=self.density_scale, last_delta=last_delta)
     return result, alloc, colour
@@ -285,10 +285,10 @@ class SlotLifter(nn.Module):
     """The coarse pass at evaluation at given depths z [B, R, S'] (adaptive rendering, issue #7).
 
     With z = the evaluation grid and last_delta None this is `render_rays(train=False)`. The
-    adaptive renderer (slotlifter_jax.adaptive) gives a window of that grid, S' ≤ S samples, and
-    last_delta [B, R], the grid δ of the window's last sample. Models with a fine pass (DTU,
-    ScanNet) are refused: their fine depths come from the coarse weights of the whole ray, which a
-    window does not have (out of scope for issue #7).
+    adaptive renderer (slotlifter_jax.rendering.adaptive) gives a window of that grid, S' ≤ S
+    samples, and last_delta [B, R], the grid δ of the window's last sample. Models with a fine
+    pass (DTU, ScanNet) are refused: their fine depths come from the coarse weights of the whole
+    ray, which a window does not have (out of scope for issue #7).
     """
     if self.num_fine_samples > 0:
       raise ValueError(f"render_at_depths: the model has a fine pass (num_fine_samples="

@@ -15,10 +15,10 @@ import numpy as np
 
 from slotlifter_jax import collapse
 from slotlifter_jax import evaluate
-from slotlifter_jax import render_views
 from slotlifter_jax import schedules
 from slotlifter_jax import vis
 from slotlifter_jax.data.types import Scene
+from slotlifter_jax.rendering import views as views_lib
 
 
 def collapse_statistics(*, segmentation, rendered, target, foreground=None) -> dict[str, float]:
@@ -45,7 +45,7 @@ class Validator:
   """Renders a few validation scenes during training, scores them and writes a PNG panel."""
 
   def __init__(self, model, config, scenes: list[Scene], workdir: str, *, num_pictures: int = 3):
-    self.renderer = render_views.SceneRenderer(model, config)
+    self.renderer = views_lib.SceneRenderer(model, config)
     self.scenes = scenes
     self.workdir = workdir
     self.num_pictures = num_pictures

@@ -1,6 +1,7 @@
-"""Adaptive full-view rendering (slotlifter_jax.adaptive, issue #7): the window choice against
-brute-force NumPy references, the window δ of volume_render, windowed compositing of an analytic
-field against the whole grid, and the model's adaptive renderer against the plain SceneRenderer.
+"""Adaptive full-view rendering (slotlifter_jax.rendering.adaptive, issue #7): the window choice
+against brute-force NumPy references, the window δ of volume_render, windowed compositing of an
+analytic field against the whole grid, and the model's adaptive renderer against the plain
+SceneRenderer.
 Odd, distinct sizes throughout (H 29 × W 31, S 11 / 41, 7 rays …) so swapped axes fail."""
 
 import chex
@@ -10,12 +11,12 @@ import numpy as np
 import pytest
 
 from data_fixtures import orbit_pose
-from slotlifter_jax import adaptive
 from slotlifter_jax import model as model_lib
-from slotlifter_jax import render
-from slotlifter_jax import render_views
 from slotlifter_jax import train_step as step_lib
 from slotlifter_jax.data.types import Scene
+from slotlifter_jax.rendering import adaptive
+from slotlifter_jax.rendering import views as views_lib
+from slotlifter_jax.rendering import volume
 from test_train import load_config
 
 NEAR, FAR = 6.0 / 7.0, 20.0 / 7.0
@@ -135,11 +136,11 @@ def test_volume_render_last_delta_default_and_window():
   density = np.where(inside, rng.exponential(0.05, size=(b, r, s)), 0.0).astype(np.float32)
   colour = rng.uniform(size=(b, r, s, 3)).astype(np.float32)
   slot_w = rng.dirichlet(np.ones(k + 1), size=(b, r, s)).astype(np.float32)
-  full = render.volume_render(density=density, z=z, colour=colour, slot_weights=slot_w,
+  full = volume.volume_render(density=density, z=z, colour=colour, slot_weights=slot_w,
                               far=FAR, density_scale=SCALE)
   # Default unchanged: None and an explicit zero last δ are the old function.
   for last in (None, np.zeros((b, r), np.float32)):
-    same = render.volume_render(density=density, z=z, colour=colour, slot_weights=slot_w,
+    same = volume.volume_render(density=density, z=z, colour=colour, slot_weights=slot_w,
                                 far=FAR, density_scale=SCALE, last_delta=last)
     for a, c in zip(jax.tree.leaves(full), jax.tree.leaves(same)):
       np.testing.assert_array_equal(a, c)
@@ -150,14 +151,14 @@ def test_volume_render_last_delta_default_and_window():
   np.testing.assert_array_equal(win.z, take(z))
   expect_delta = np.where(start + wn < s, (FAR - NEAR) / s, 0.0)
   np.testing.assert_allclose(win.last_delta, expect_delta, rtol=1e-5)
-  part = render.volume_render(density=take(density), z=win.z, colour=take(colour),
+  part = volume.volume_render(density=take(density), z=win.z, colour=take(colour),
                               slot_weights=take(slot_w), far=FAR, density_scale=SCALE,
                               last_delta=win.last_delta)
   for name in ("colour", "depth", "segmentation", "opacity"):
     np.testing.assert_allclose(getattr(part, name), getattr(full, name), atol=1e-6, err_msg=name)
   np.testing.assert_allclose(part.weights, take(np.asarray(full.weights)), atol=1e-6)
   # Without the grid δ the window's last sample would be transparent: the argument matters.
-  wrong = render.volume_render(density=take(density), z=win.z, colour=take(colour),
+  wrong = volume.volume_render(density=take(density), z=win.z, colour=take(colour),
                                slot_weights=take(slot_w), far=FAR, density_scale=SCALE)
   assert np.abs(np.asarray(wrong.opacity) - np.asarray(full.opacity)).max() > 1e-2
 
@@ -177,7 +178,7 @@ def _shell_field(origins, directions, z, last_delta):
   density = SHELL_DENSITY * jnp.exp(-0.5 * ((radius - SPHERE_RADIUS) / SHELL_WIDTH) ** 2)
   colour = 0.5 + 0.5 * jnp.sin(3.0 * p + jnp.array([0.0, 1.0, 2.0]))
   slot_w = jax.nn.softmax(4.0 * jnp.concatenate([p, jnp.zeros_like(p[..., :1])], -1), -1)
-  out = render.volume_render(density=density, z=z, colour=colour, slot_weights=slot_w, far=FAR,
+  out = volume.volume_render(density=density, z=z, colour=colour, slot_weights=slot_w, far=FAR,
                              density_scale=SCALE, last_delta=last_delta)
   return (out.colour, out.depth, out.segmentation), out.weights
 
@@ -257,7 +258,7 @@ def smoke_model():
   inputs = step_lib.init_batch(scene)
   inputs.pop("target_rgb")
   params = jax.jit(lambda: model.init(jax.random.key(0), **inputs, train=False))()["params"]
-  plain = render_views.SceneRenderer(model, config).render(params, scene, [0, 1, 2])
+  plain = views_lib.SceneRenderer(model, config).render(params, scene, [0, 1, 2])
   return config, model, params, scene, plain
 
 
@@ -329,19 +330,19 @@ def test_adaptive_refuses_fine_pass_and_bad_settings(smoke_model):
         method=model_lib.SlotLifter.render_at_depths)
   with pytest.raises(ValueError, match="adaptive_window"):
     adaptive.AdaptiveSceneRenderer(model, _adaptive(config, adaptive_window=99))
-  assert isinstance(adaptive.make_scene_renderer(model, config), render_views.SceneRenderer)
+  assert isinstance(adaptive.make_scene_renderer(model, config), views_lib.SceneRenderer)
 
 
-def test_render_mode_slot_renderer_switches_to_adaptive(smoke_model):
+def test_pictures_slot_renderer_switches_to_adaptive(smoke_model):
   """The render mode's SlotRenderer with render.adaptive and W = S: the plain panel outputs,
   per-slot renderings included."""
-  from slotlifter_jax import render_mode
+  from slotlifter_jax.rendering import pictures
   config, model, params, scene, _ = smoke_model
   cams, intr = scene.cam_to_world[1:], scene.intrinsics[1:]
-  plain = render_mode.SlotRenderer(model, config).render(params, scene, cam_to_world=cams,
-                                                         intrinsics=intr)
+  plain = pictures.SlotRenderer(model, config).render(params, scene, cam_to_world=cams,
+                                                      intrinsics=intr)
   cfg = _adaptive(config, adaptive_window=config.render.num_samples, adaptive_stride=5)
-  renderer = render_mode.SlotRenderer(model, cfg)
+  renderer = pictures.SlotRenderer(model, cfg)
   assert renderer.adaptive is not None
   got = renderer.render(params, scene, cam_to_world=cams, intrinsics=intr)
   for name in ("colour", "depth", "segmentation", "slot_colour"):

@@ -6,6 +6,7 @@ question is whether the right views reach them and the results are aggregated an
 """
 
 import csv
+import dataclasses
 import json
 import math
 import os
@@ -23,15 +24,15 @@ from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import decoder as decoder_lib
 from slotlifter_jax import evaluate
 from slotlifter_jax import geometry
-from slotlifter_jax import render
-from slotlifter_jax import render_mode
-from slotlifter_jax import render_views
 from slotlifter_jax import train
 from slotlifter_jax import validation
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import registry
 from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
+from slotlifter_jax.rendering import pictures
+from slotlifter_jax.rendering import views as views_lib
+from slotlifter_jax.rendering import volume
 from test_train import load_config
 
 # ---------------------------------------------------------------------------------------------
@@ -55,7 +56,7 @@ def _toy_scene(rng):
 
 def _toy_render(rng, n):
   seg = rng.uniform(size=(n, H, W, K)).astype(np.float32)
-  return render_views.RenderedViews(
+  return views_lib.RenderedViews(
       colour=rng.uniform(size=(n, H, W, 3)).astype(np.float32),
       depth=np.zeros((n, H, W), np.float32), segmentation=seg / seg.sum(-1, keepdims=True),
       slots=np.zeros((K, 2), np.float32), slot_attn=np.zeros((K, 4), np.float32),
@@ -83,7 +84,7 @@ def test_render_cameras_covers_every_pixel_once_in_order(height, width, chunk):
     sizes.append(origins.shape[1])
     return origins + 2.0 * directions, directions[..., 0]
 
-  points, first = render_views.render_cameras(
+  points, first = views_lib.render_cameras(
       fn, cam_to_world=cams, intrinsics=[intr, intr], height=height, width=width, chunk=chunk)
   n = height * width
   assert points.shape == (2, n, 3) and first.shape == (2, n)
@@ -173,9 +174,19 @@ def test_lpips_network_by_data_set():
 # ---------------------------------------------------------------------------------------------
 
 
+def test_panel_row_labels_and_checkpoint_name():
+  rng = np.random.default_rng(0)
+  scene = _toy_scene(rng)
+  assert pictures.view_labels(scene) == ["source", "novel 1", "novel 2", "novel 3", "novel 4"]
+  two = dataclasses.replace(scene, source_indices=(2, 0))
+  assert pictures.view_labels(two) == ["source 2", "novel 1", "source 1", "novel 2", "novel 3"]
+  assert pictures.checkpoint_name(os.path.join("run", "checkpoints", "best", "40")) == "best"
+  assert pictures.checkpoint_name("run/checkpoints/latest/7/") == "latest"
+
+
 def test_orbit_circles_z_axis_looking_at_origin():
   source = look_at([3.0, -5.0, 4.0])  # the test fixtures' own look-at, not the library's
-  poses = render_mode.orbit_cam_to_world(source_cam_to_world=source, num_frames=7)
+  poses = pictures.orbit_cam_to_world(source_cam_to_world=source, num_frames=7)
   assert poses.shape == (7, 4, 4)
   np.testing.assert_allclose(poses[0], source, atol=1e-9)
   eyes = poses[:, :3, 3]
@@ -319,7 +330,7 @@ def test_eval_refuses_unknown_split_checkpoint_and_empty_folder(run_dir, tmp_pat
 def test_per_slot_rendering_is_consistent_with_the_model(run_dir):
   run = evaluate.load_run(load_config(), run_dir, split="test", max_scenes=1)
   scene, model = run.scenes[0], run.model
-  sources = render_mode.SlotRenderer(model, run.config).sources(scene)
+  sources = pictures.SlotRenderer(model, run.config).sources(scene)
   rng = np.random.default_rng(3)
   centre = np.asarray(scene.cam_to_world[1, :3, 3])  # rays from a novel camera towards the scene
   dirs = -centre + rng.normal(scale=0.2, size=(1, 13, 3))
@@ -328,54 +339,87 @@ def test_per_slot_rendering_is_consistent_with_the_model(run_dir):
   @jax.jit  # compiled: a quarter of the time of running the model op by op
   def render_rays(params):
     encoded = model.apply({"params": params}, **sources, train=False, method=model.encode)
-    return render_mode.render_rays(
+    return pictures.render_rays(
         model, params, encoded, sources=sources,
         ray_origins=jnp.asarray(np.broadcast_to(centre, (1, 13, 3)), jnp.float32),
         ray_directions=jnp.asarray(dirs, jnp.float32))
 
   out = render_rays(run.params)
   # The per-sample colour and density the model returns are what it composited.
-  again = render.volume_render(density=out.density, z=out.z, colour=out.sample_colour,
+  again = volume.volume_render(density=out.density, z=out.z, colour=out.sample_colour,
                                slot_weights=out.point_slot_weights, far=model.far,
                                density_scale=model.density_scale)
   np.testing.assert_allclose(again.colour, out.coarse.colour, atol=1e-6)
   np.testing.assert_allclose(out.slot_density.sum(-1), out.density, rtol=1e-5, atol=1e-6)
-  alone = render_mode.render_each_slot(out, far=model.far, density_scale=model.density_scale)
+  alone = pictures.render_each_slot(out, far=model.far, density_scale=model.density_scale)
   assert alone.colour.shape == (1, 13, model.num_slots, 3)
   # A slot alone is never more opaque than all slots together.
   assert np.all(np.asarray(alone.opacity) <= np.asarray(out.coarse.opacity)[..., None] + 1e-6)
 
 
 @pytest.mark.slow
-def test_render_mode_writes_panel_and_orbit(run_dir):
+def test_pictures_writes_panel_and_orbit(run_dir):
   config = load_config()
   frames = 5
-  files = render_mode.render_scenes(config, run_dir, split="test", scene_indices=[1],
-                                    num_orbit_frames=frames, progress=False)
+  files = pictures.render_scenes(config, run_dir, split="test", scene_indices=[1],
+                                 num_orbit_frames=frames, progress=False)
   assert [f.scene_index for f in files] == [1]
   assert files[0].panel.endswith(os.path.join("render", "test", "scene_0001_panel.png"))
   s, k, views = config.data.image_size, config.model.num_slots, config.data.views_per_scene
-  pad = render_mode.PAD
+  pad, header, footer = pictures.PAD, pictures.HEADER, pictures.FOOTER
+  label, scale = pictures.LABEL_WIDTH, pictures.SCALE_WIDTH
   columns = 6 + k  # source, truth, mask, rendering, depth, overlay, one per slot
   panel = np.asarray(Image.open(files[0].panel).convert("RGB"), np.float32) / 255.0
-  assert panel.shape == (render_mode.HEADER + views * (s + pad) - pad,
-                         columns * (s + pad) - pad, 3)
+  body = views * (s + pad) - pad
+  assert panel.shape == (header + body + footer, label + pad + columns * (s + pad) + scale, 3)
+
+  def tile_x(column):  # left edge of a tile column; the depth scale follows column 4 (depth)
+    return label + pad + column * (s + pad) + (scale + pad if column > 4 else 0)
+
+  def has_ink(area):  # text or a bar drawn on the white background
+    return area.size > 0 and area.min() < 0.5
+
+  # The row labels: text in each row's part of the label column, "source" differing from "novel 1".
+  rows = [panel[header + i * (s + pad):header + i * (s + pad) + s, :label] for i in range(views)]
+  assert all(has_ink(r) for r in rows)
+  assert np.abs(rows[0] - rows[1]).max() > 0.5
+  # The footer names the checkpoint and step; the header the columns.
+  assert has_ink(panel[header + body:]) and has_ink(panel[:header])
+  # The depth scale: a grey-framed bar from white (near, top) to black (far, bottom) over all
+  # rows, and its two values printed beside it.
+  x = tile_x(4) + s + pad
+  bar = panel[header + 1:header + body - 1, x + pictures.DEPTH_BAR // 2, 0]
+  assert bar[0] > 0.99 and bar[-1] < 0.01 and np.all(np.diff(bar) <= 1e-6)
+  np.testing.assert_allclose(panel[header:header + body, x], pictures.FRAME_GREY, atol=1 / 255)
+  values = panel[header:header + body, x + pictures.DEPTH_BAR:x + scale]
+  assert has_ink(values[:pictures.TEXT_HEIGHT]) and has_ink(values[-pictures.TEXT_HEIGHT:])
+
   gif = Image.open(files[0].orbit)
   assert gif.n_frames == frames
-  assert gif.size == (2 * s + pad, s + render_mode.BAR)
+  f = -(-pictures.ORBIT_TILE // s)  # whole enlargement factor: tiles of at least ORBIT_TILE px
+  assert f * s >= pictures.ORBIT_TILE
+  top = pictures.ORBIT_HEADER
+  assert gif.size == (2 * f * s + pictures.ORBIT_PAD, top + f * s + pictures.BAR)
+  gif.seek(0)
+  frame = np.asarray(gif.convert("RGB"), np.float32) / 255.0
+  # Titles above both tiles.
+  assert has_ink(frame[:top, :f * s]) and has_ink(frame[:top, f * s + pictures.ORBIT_PAD:])
+  # Nearest-neighbour enlargement: every rendered pixel is an f×f block of one colour.
+  tiles = frame[top:top + f * s]
+  blocks = tiles.reshape(s, f, 2 * f * s + pictures.ORBIT_PAD, 3)
+  assert np.all(blocks == blocks[:, :1])
+  rendering = tiles[::f, :f * s].reshape(s, s, f, 3)
+  assert np.all(rendering == rendering[:, :, :1])
   # Frame 0 is taken from the source camera, so its rendering is the panel's source-view
   # rendering (row 0, column 3), up to the GIF's 256-colour palette.
-  gif.seek(0)
-  frame = np.asarray(gif.convert("RGB"), np.float32)[:s, :s] / 255.0
-  top = render_mode.HEADER
-  tile = panel[top:top + s, 3 * (s + pad):3 * (s + pad) + s]
-  assert np.mean(np.abs(frame - tile)) < 0.03
+  tile = panel[header:header + s, tile_x(3):tile_x(3) + s]
+  assert np.mean(np.abs(rendering[:, :, 0] - tile)) < 0.03
 
   with pytest.raises(evaluate.EvalSetupError, match="out of range"):
-    render_mode.render_scenes(config, run_dir, split="test", scene_indices=[99], progress=False)
+    pictures.render_scenes(config, run_dir, split="test", scene_indices=[99], progress=False)
   with pytest.raises(evaluate.EvalSetupError, match="orbit_frames"):
-    render_mode.render_scenes(config, run_dir, scene_indices=[0], num_orbit_frames=65,
-                              progress=False)
+    pictures.render_scenes(config, run_dir, scene_indices=[0], num_orbit_frames=65,
+                           progress=False)
 
 
 @pytest.mark.slow

@@ -289,7 +289,7 @@ def test_samples_in_a_slab_render_its_closed_form_opacity():
   """Constant σ inside the slab, zero outside: with all S evaluation samples inside the ray's slab
   segment of length L (Δ = L/S, the last δ is 0), the opacity is exactly 1 − exp(−25σ(S−1)Δ).
   On the unbounded grid only the few samples that land in the slab would see the density."""
-  from slotlifter_jax import render
+  from slotlifter_jax.rendering import volume
   origins = jnp.array([[0.0, 0.0, 1.2], [0.3, -0.2, 1.0]], jnp.float32)
   dirs = jnp.array([[0.0, 0.6, -0.8], [0.48, 0.0, -0.6]], jnp.float32)
   dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)
@@ -300,7 +300,7 @@ def test_samples_in_a_slab_render_its_closed_form_opacity():
   height = origins[:, None, 2] + z * dirs[:, None, 2]
   assert bool(jnp.all((height >= z_min - 1e-5) & (height <= z_max + 1e-5)))
   density = jnp.where((height >= z_min) & (height <= z_max), sigma, 0.0)
-  out = render.volume_render(density=density, z=z, colour=jnp.ones(z.shape + (3,)),
+  out = volume.volume_render(density=density, z=z, colour=jnp.ones(z.shape + (3,)),
                              slot_weights=None, far=3.0)
   length = (z_max - z_min) / np.abs(np.asarray(dirs[:, 2]))  # both rays cross the whole slab
   expected = 1.0 - np.exp(-25.0 * sigma * (s - 1) * length / s)

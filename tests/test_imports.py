@@ -130,7 +130,7 @@ def test_graph_sees_module_and_function_level_imports():
 
 @pytest.mark.parametrize("source, cycle", [
     # A module-level import one way and a function-level one back: the shape of the cycles that
-    # were removed (evaluate ↔ train, adaptive ↔ render_views).
+    # were removed (evaluate ↔ train, rendering.adaptive ↔ rendering.views).
     ({"a.py": "from pkg import b\n",
       "b.py": "def f():\n  from pkg import a\n  return a\n"}, ["pkg.a", "pkg.b", "pkg.a"]),
     ({"a.py": "import pkg.sub.c\n", "sub/__init__.py": "",

@@ -1,4 +1,5 @@
-"""Tests of slotlifter_jax.render against a plain NumPy for-loop renderer and at extreme densities."""
+"""Tests of slotlifter_jax.rendering.volume against a plain NumPy for-loop renderer and at
+extreme densities."""
 
 import chex
 import jax
@@ -6,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from slotlifter_jax import render
+from slotlifter_jax.rendering import volume
 
 B, R, S, K, C = 2, 7, 11, 5, 3
 SCALE = 25.0
@@ -51,7 +52,7 @@ def _random_inputs(seed, density_scale=1.0):
 
 def _render(density, z, colour, slot_weights, **kwargs):
   f32 = lambda a: None if a is None else jnp.asarray(a, jnp.float32)
-  return render.volume_render(density=f32(density), z=f32(z), colour=f32(colour),
+  return volume.volume_render(density=f32(density), z=f32(z), colour=f32(colour),
                               slot_weights=f32(slot_weights), far=FAR, density_scale=SCALE,
                               **kwargs)
 
@@ -70,7 +71,7 @@ def test_volume_render_matches_numpy_loop(density_scale):
   np.testing.assert_allclose(np.asarray(out.depth), ref_d, atol=1e-5)
   np.testing.assert_allclose(np.asarray(out.opacity), ref_o, atol=1e-5)
   np.testing.assert_allclose(np.asarray(out.segmentation), ref_m, atol=1e-5)
-  alpha = render.alpha_from_density(density=jnp.asarray(density, jnp.float32),
+  alpha = volume.alpha_from_density(density=jnp.asarray(density, jnp.float32),
                                     z=jnp.asarray(z, jnp.float32), density_scale=SCALE)
   np.testing.assert_allclose(np.asarray(alpha), np.asarray(out.alpha), rtol=1e-6)
 
@@ -123,12 +124,12 @@ def test_finite_values_and_gradients_at_extreme_densities(value):
   density = jnp.full((R, S), value, jnp.float32)
 
   def loss(density, colour, slot_weights):
-    out = render.volume_render(density=density, z=z, colour=colour, slot_weights=slot_weights,
+    out = volume.volume_render(density=density, z=z, colour=colour, slot_weights=slot_weights,
                                far=FAR, density_scale=SCALE)
     return (out.colour.sum() + out.depth.sum() + out.segmentation.sum() + out.weights.sum()
             + out.alpha.sum())
 
-  out = render.volume_render(density=density, z=z, colour=colour, slot_weights=slot_weights,
+  out = volume.volume_render(density=density, z=z, colour=colour, slot_weights=slot_weights,
                              far=FAR)
   for leaf in jax.tree.leaves(out):
     assert np.all(np.isfinite(np.asarray(leaf)))
@@ -136,7 +137,7 @@ def test_finite_values_and_gradients_at_extreme_densities(value):
   for g in grads:
     assert np.all(np.isfinite(np.asarray(g)))
   alpha_grad = jax.grad(
-      lambda d: render.alpha_from_density(density=d, z=z).sum())(density)
+      lambda d: volume.alpha_from_density(density=d, z=z).sum())(density)
   assert np.all(np.isfinite(np.asarray(alpha_grad)))
   # Colour gradient equals the weights, which must also be finite and non-negative.
   np.testing.assert_allclose(np.asarray(grads[1][..., 0]), np.asarray(out.weights), atol=1e-6)
@@ -144,7 +145,7 @@ def test_finite_values_and_gradients_at_extreme_densities(value):
 
 def test_alpha_small_density_is_exact():
   z = jnp.array([1.0, 1.5, 2.5])
-  alpha = render.alpha_from_density(density=jnp.full((3,), 1e-8), z=z, density_scale=SCALE)
+  alpha = volume.alpha_from_density(density=jnp.full((3,), 1e-8), z=z, density_scale=SCALE)
   # 1 − exp(−x) ≈ x for tiny x; a naive 1 − exp(−x) in float32 would return 0.
   np.testing.assert_allclose(np.asarray(alpha), [1e-8 * 0.5 * SCALE, 1e-8 * 1.0 * SCALE, 0.0],
                              rtol=1e-5)
@@ -155,7 +156,7 @@ def test_jit_and_vmap_agree():
   args = [jnp.asarray(a, jnp.float32) for a in (density, z, colour, slot_weights)]
 
   def f(d, zz, c, sw):
-    return render.volume_render(density=d, z=zz, colour=c, slot_weights=sw, far=FAR)
+    return volume.volume_render(density=d, z=zz, colour=c, slot_weights=sw, far=FAR)
 
   eager, jitted, mapped = f(*args), jax.jit(f)(*args), jax.vmap(f)(*args)
   for other in (jitted, mapped):

@@ -20,7 +20,7 @@ them, which is what the plain path would composite when the density outside the 
           window start i0 ∈ [0, S − Wn] covering it, centred when shorter (`choose_windows`).
           Empty hulls (all four corners transparent) take i0 = 0: the pixel is transparent anyway.
   pass 2  those pixels on the Wn samples z[i0 : i0+Wn] of the grid (`SlotLifter.render_at_depths`);
-          the last sample keeps its grid δ (`render.volume_render(last_delta=…)`), the
+          the last sample keeps its grid δ (`volume.volume_render(last_delta=…)`), the
           transmittance in front of the window is 1 (the window starts where the neighbours found
           ≤ ε of weight).
   pass 3  fallback (`render.adaptive_fallback`, default on): a pixel whose hull is longer than Wn
@@ -55,8 +55,8 @@ import ml_collections
 import numpy as np
 
 from slotlifter_jax import geometry
-from slotlifter_jax import render_views
 from slotlifter_jax.data.types import Scene
+from slotlifter_jax.rendering import views as views_lib
 
 # The fallback pass's pixel count changes from view to view, so its chunk is fixed per image size
 # and small: 1/FALLBACK_CHUNK_DIVISOR of the pixels, so its padding wastes at most that share of
@@ -354,7 +354,7 @@ def camera_rays(*, cam_to_world: np.ndarray, intrinsics: np.ndarray, height: int
 
 
 # ---------------------------------------------------------------------------------------------
-# The renderer beside render_views.SceneRenderer
+# The renderer beside views.SceneRenderer
 # ---------------------------------------------------------------------------------------------
 
 
@@ -371,7 +371,7 @@ def model_render_fn(model, params, encoded, sources: dict, locality) -> RenderFn
 
 
 class AdaptiveSceneRenderer:
-  """`render_views.SceneRenderer` with adaptive rendering (module docstring): the same `render`
+  """`views.SceneRenderer` with adaptive rendering (module docstring): the same `render`
   signature and RenderedViews; `render_with_diagnostics` also returns what each view cost."""
 
   def __init__(self, model, config: ml_collections.ConfigDict):
@@ -397,17 +397,17 @@ class AdaptiveSceneRenderer:
       return window_pass(fn, origins=origins, directions=directions, start=start, grid=grid,
                          window=st.window)
 
-    self._encode = render_views.make_encode(model)
+    self._encode = views_lib.make_encode(model)
     self._proposal_chunk, self._window_chunk = proposal_chunk, window_chunk
 
   def sources(self, scene: Scene, source_indices=None) -> dict:
-    return render_views.scene_sources(scene, signed=self.signed, source_indices=source_indices)
+    return views_lib.scene_sources(scene, signed=self.signed, source_indices=source_indices)
 
   def render_with_diagnostics(self, params, scene: Scene, view_indices, *, source_indices=None,
                               locality: bool = False,
                               cam_to_world: Optional[np.ndarray] = None,
                               intrinsics: Optional[np.ndarray] = None
-                              ) -> tuple[render_views.RenderedViews, list[ViewDiagnostics]]:
+                              ) -> tuple[views_lib.RenderedViews, list[ViewDiagnostics]]:
     """Views `view_indices` of `scene` (or the cameras cam_to_world [n, 4, 4], intrinsics
     [n, 3, 3] when given) → RenderedViews and one ViewDiagnostics per view."""
     sources = self.sources(scene, source_indices)
@@ -430,25 +430,25 @@ class AdaptiveSceneRenderer:
       depths.append(depth.reshape(height, width))
       segs.append(seg.reshape(height, width, -1))
       diags.append(diag)
-    rendered = render_views.RenderedViews(
+    rendered = views_lib.RenderedViews(
         colour=np.stack(colours), depth=np.stack(depths), segmentation=np.stack(segs),
         slots=np.asarray(encoded.slots[0]), slot_attn=np.asarray(encoded.slot_attn[0]),
-        source_labels=render_views.source_attention_labels(encoded, (height, width)))
+        source_labels=views_lib.source_attention_labels(encoded, (height, width)))
     return rendered, diags
 
   def render(self, params, scene: Scene, view_indices, *, source_indices=None,
-             locality: bool = False) -> render_views.RenderedViews:
-    """As `render_views.SceneRenderer.render`."""
+             locality: bool = False) -> views_lib.RenderedViews:
+    """As `views.SceneRenderer.render`."""
     return self.render_with_diagnostics(params, scene, view_indices,
                                         source_indices=source_indices, locality=locality)[0]
 
 
 def make_scene_renderer(model, config):
   """The renderer the eval mode uses: `AdaptiveSceneRenderer` when `render.adaptive` is on
-  (issue #7; same `render` signature and result), else `render_views.SceneRenderer` (every pixel on
+  (issue #7; same `render` signature and result), else `views.SceneRenderer` (every pixel on
   the whole sample grid). Validation during training keeps SceneRenderer, so model selection is
-  exact. The switch lives here, not in render_views, because this module builds on render_views:
+  exact. The switch lives here, not in views.py, because this module builds on views.py:
   the import then runs one way."""
   if config.render.get("adaptive", False):
     return AdaptiveSceneRenderer(model, config)
-  return render_views.SceneRenderer(model, config)
+  return views_lib.SceneRenderer(model, config)

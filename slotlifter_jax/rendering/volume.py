@@ -39,9 +39,9 @@ def _optical_depth(*, density: jax.Array, z: jax.Array, density_scale: float,
   """σ_i·δ_i·scale with δ_i = z_{i+1} − z_i: [..., S] -> [..., S].
 
   The last δ is 0 (docs/method.md §1.5) unless `last_delta` [...] gives it: a window of a longer
-  sample grid (slotlifter_jax.adaptive) ends at a sample whose grid successor it does not hold, and
-  its last sample must keep the δ it has in the whole grid for the window to composite like the
-  grid.
+  sample grid (slotlifter_jax.rendering.adaptive) ends at a sample whose grid successor it does
+  not hold, and its last sample must keep the δ it has in the whole grid for the window to
+  composite like the grid.
   """
   if last_delta is None:
     last = jnp.zeros_like(z[..., :1])
