@@ -35,7 +35,7 @@ def _split(records: list[dict]) -> tuple[list[dict], list[dict]]:
 
 TABLE = (("keep ratio", "keep_ratio", "{:.2f}"), ("novel PSNR", "psnr_novel", "{:.1f}"),
          ("attn_fg_ari", "attn_fg_ari", "{:.3f}"), ("FG-ARI", "fg_ari", "{:.3f}"),
-         ("NV-ARI", "nv_ari", "{:.3f}"), ("active slots", "active_slots", "{:.2f}"),
+         ("FG-ARI ≥ 2 obj", "fg_ari_multi", "{:.3f}"), ("NV-ARI", "nv_ari", "{:.3f}"), ("active slots", "active_slots", "{:.2f}"),
          ("largest share", "probe_largest_share", "{:.2f}"))
 
 
@@ -51,7 +51,8 @@ def validation_table(records: list[dict]) -> list[str]:
     nearest = min(keep, key=lambda s: abs(s - step)) if keep else None
     values = {key: c[key][i] for _, key, _ in TABLE if key != "keep_ratio"}
     values["keep_ratio"] = keep.get(nearest)
-    cells = ["" if values[key] is None else fmt.format(values[key]) for _, key, fmt in TABLE]
+    cells = ["–" if values[key] is None or values[key] != values[key] else fmt.format(values[key])
+             for _, key, fmt in TABLE]  # – : not logged (older runs) or no such view
     lines.append(f"| {int(step)} | {c['minutes'][i]:.1f} | " + " | ".join(cells) + " |")
   return lines
 

@@ -132,6 +132,28 @@ def test_scene_metrics_splits_views_and_skips_as_the_protocol_says():
   assert out["slot_excess"] == out["active_slots"] - out["num_objects"]
 
 
+def test_fg_ari_on_views_with_two_objects_leaves_out_single_object_views():
+  """One visible object: FG-ARI is 0 for any split of it (sklearn's convention) whatever the split
+  looks like, so `fg_ari_multi` skips such views; views with two objects score as FG-ARI."""
+  rng = np.random.default_rng(5)
+  scene = _toy_scene(rng)
+  masks = np.zeros((5, H, W), np.int32)
+  masks[0, :2, :] = 1  # source: one object only
+  masks[1, :2, :], masks[1, 3:, :] = 1, 2  # novel 1: two objects
+  masks[3, :2, :] = 2  # novel 3: one object
+  scene = Scene(**{**scene.__dict__, "masks": masks})
+  # The rendering splits every object's pixels in two columns' halves: slot 0 | slot 1.
+  seg = np.zeros((5, H, W, K), np.float32)
+  seg[..., :3, 0], seg[..., 3:, 1] = 1.0, 1.0
+  rendered = dataclasses.replace(_toy_render(rng, 5), segmentation=seg)
+  out = evaluate.scene_metrics(rendered, scene, range(5))
+  true, pred = masks.reshape(5, -1), np.argmax(seg, -1).reshape(5, -1)
+  assert out["fg_ari"] == pytest.approx(0.0)  # a split single object: exactly 0
+  assert np.isnan(out["fg_ari_multi"])
+  assert out["nv_fg_ari_multi"] == pytest.approx(_fg_ari(true[1], pred[1]))
+  assert out["nv_fg_ari"] == pytest.approx(np.mean([_fg_ari(true[v], pred[v]) for v in (1, 3)]))
+
+
 def test_scene_metrics_quirk_and_missing_masks():
   rng = np.random.default_rng(1)
   scene = _toy_scene(rng)
