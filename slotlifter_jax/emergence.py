@@ -274,7 +274,7 @@ def _write_json_atomically(path: str, data) -> None:
 
 def build_emergence(records: Sequence[dict], *, key: str = "fg_ari",
                     thresholds: Sequence[float] = THRESHOLDS,
-                    other_keys: Sequence[str] = ("attn_fg_ari", "nv_ari")) -> dict:
+                    other_keys: Sequence[str] = ("attn_fg_ari", "nv_ari", "fg_ari_multi")) -> dict:
   """The content of emergence.json (`write_emergence`) from a log's records, NaN as None."""
   out = time_to_decomposition(records, key=key, thresholds=thresholds)
   out["others"] = {k: {f: time_to_decomposition(records, key=k, thresholds=thresholds)[f]
@@ -292,7 +292,8 @@ def write_emergence(workdir: str, **kwargs) -> dict:
   """Reads DIR/metrics.jsonl, writes DIR/emergence.json atomically and returns its content.
 
   Keyword arguments go to `build_emergence`. The file holds the `time_to_decomposition` fields for
-  `key` (crossings, best, ...), "others" (crossings and best of attn_fg_ari and nv_ari),
+  `key` (crossings, best, ...), "others" (crossings and best of attn_fg_ari, nv_ari and
+  fg_ari_multi, the FG-ARI of views with two or more objects),
   "num_val_scenes" (None when no validation record carries a scene count), "summary" (the
   `summary_lines`) and "curves" (`curves` as lists); NaN is written as null.
   """
