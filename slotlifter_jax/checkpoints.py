@@ -39,16 +39,29 @@ class EvalSetupError(ValueError):
   """
 
 
+def _processes(name: str) -> ocp.options.MultiprocessingOptions:
+  """Each manager's own barrier names: with several processes, orbax synchronises a save through
+  barriers named after the step alone, so the latest and best managers saving the same step at
+  once collide ("Barrier _async_write_complete.3 is already ongoing") and the save never ends."""
+  return ocp.options.MultiprocessingOptions(barrier_sync_key_prefix=name)
+
+
 class Checkpoints:
+  """The latest and best managers. Every process of a multi-process run makes the same calls (orbax
+  synchronises them, creates the folders and writes each file once, from process 0 or from the
+  process that holds a shard)."""
+
   def __init__(self, workdir: str, *, keep: int = 3):
     root = os.path.abspath(os.path.join(workdir, "checkpoints"))
     self.latest = ocp.CheckpointManager(
         os.path.join(root, "latest"),
-        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True))
+        options=ocp.CheckpointManagerOptions(max_to_keep=keep, create=True,
+                                             multiprocessing_options=_processes("latest")))
     self.best = ocp.CheckpointManager(
         os.path.join(root, "best"),
         options=ocp.CheckpointManagerOptions(
-            max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", create=True))
+            max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", create=True,
+            multiprocessing_options=_processes("best")))
 
   def latest_step(self) -> int | None:
     return self.latest.latest_step()

@@ -42,6 +42,7 @@ from tqdm import tqdm
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import metrics
 from slotlifter_jax import model as model_lib
+from slotlifter_jax import multihost
 from slotlifter_jax.checkpoints import EvalSetupError
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import pipeline
@@ -249,7 +250,7 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
                             f"training run directory (train it first with --mode=train)")
   ckpt_lib.check_compatible(config, saved, workdir)
   _warn_other_differences(config, saved)
-  config = embedded.resolve_data(config)
+  config = multihost.primary_first(lambda: embedded.resolve_data(config), "data")  # generated once
   scenes = registry.load_split(config.data, split, max_scenes=max_scenes)
   # DTU/ScanNet training scenes pool their sources; evaluate them one target at a time, as the
   # readers already deliver the val and test splits.
@@ -325,6 +326,7 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
   per_scene_path = os.path.join(out_dir, "per_scene.csv")
   if os.path.exists(metrics_path) and not overwrite:
     raise FileExistsError(f"{metrics_path} exists; pass --overwrite to replace it")
+  multihost.barrier("eval_start")  # every process has checked before process 0 writes the file
   run = load_run(config, workdir, split=split, checkpoint=checkpoint, max_scenes=max_scenes)
   net = lpips_net_for(run.config)
   renderer = adaptive.make_scene_renderer(run.model, run.config)  # render.adaptive switches

@@ -5,6 +5,9 @@ DIR/eval/<split>/), render (panels and orbit GIFs of chosen scenes into DIR/rend
   --mode=eval --split=test --checkpoint=best|latest|<step> [--overwrite] [--max_scenes=N]
               [--lpips_quirk] [--nv_ari_last_view]
   --mode=render --split=test --scenes=0,3,5 --orbit_frames=24
+Several processes (one per host or per GPU): the same command on each, with --distributed and
+  --coordinator_address=HOST:PORT --num_processes=N --process_id=I (or JAX_COORDINATOR_ADDRESS;
+  under SLURM or Open MPI jax finds all three itself); process 0 writes the files.
 """
 
 import sys
@@ -18,7 +21,14 @@ config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/clevr
                                 lock_config=True)
 flags.DEFINE_string("workdir", None, "Run directory: checkpoints, metrics, pictures.")
 flags.DEFINE_enum("mode", "train", ["train", "eval", "render"], "What to do.")
-flags.DEFINE_bool("distributed", False, "Call jax.distributed.initialize() (multi-host runs).")
+flags.DEFINE_bool("distributed", False, "Call jax.distributed.initialize(): one of several "
+                  "processes training one run (slotlifter_jax/multihost.py).")
+flags.DEFINE_string("coordinator_address", None, "--distributed: HOST:PORT of process 0's "
+                    "coordinator (default: $JAX_COORDINATOR_ADDRESS, or detected by jax).")
+flags.DEFINE_integer("num_processes", None, "--distributed: number of processes (default: "
+                     "detected by jax, e.g. under SLURM).")
+flags.DEFINE_integer("process_id", None, "--distributed: this process's index, 0 … N−1 "
+                     "(default: detected by jax).")
 flags.DEFINE_enum("split", "test", ["train", "val", "test"], "eval/render: which split.")
 flags.DEFINE_string("checkpoint", "", "eval/render: best, latest or a step (default: best if "
                     "the run has one, else latest).")
@@ -53,7 +63,12 @@ def main(argv):
     sys.exit(f"error: --config={FLAGS['config'].config_filename}: cannot be loaded ({_one_line(e)})")
   import jax
   if FLAGS.distributed:
-    jax.distributed.initialize()
+    from slotlifter_jax import multihost
+    multihost.initialize(FLAGS.coordinator_address, FLAGS.num_processes, FLAGS.process_id)
+    if jax.process_index() != 0:  # process 0 logs the progress; the others only their warnings
+      logging.set_verbosity(logging.WARNING)
+  elif any(FLAGS[f].present for f in ("coordinator_address", "num_processes", "process_id")):
+    sys.exit("error: --coordinator_address, --num_processes and --process_id need --distributed")
   logging.info("JAX devices: %s (process %d of %d); %s", jax.devices(), jax.process_index(),
                jax.process_count(), runtime.describe())
   warning = runtime.slow_allocator_warning()
@@ -75,19 +90,20 @@ def main(argv):
     return
   from slotlifter_jax import evaluate
   from slotlifter_jax.rendering import pictures
+  say = print if jax.process_index() == 0 else (lambda *a: None)  # one table, not one per process
   try:
     if FLAGS.mode == "eval":
       result = evaluate.evaluate_split(
           FLAGS.config, FLAGS.workdir, split=FLAGS.split, checkpoint=FLAGS.checkpoint,
           overwrite=FLAGS.overwrite, max_scenes=FLAGS.max_scenes, lpips_quirk=FLAGS.lpips_quirk,
           nv_ari_last_view=FLAGS.nv_ari_last_view)
-      print(evaluate.format_table(result))
+      say(evaluate.format_table(result))
     else:
       for files in pictures.render_scenes(
           FLAGS.config, FLAGS.workdir, split=FLAGS.split,
           scene_indices=pictures.parse_scene_indices(FLAGS.scenes),
           checkpoint=FLAGS.checkpoint, num_orbit_frames=FLAGS.orbit_frames):
-        print(f"scene {files.scene_index} ({files.scene_name}): {files.panel}\n  {files.orbit}")
+        say(f"scene {files.scene_index} ({files.scene_name}): {files.panel}\n  {files.orbit}")
   except (evaluate.EvalSetupError, checkpoints.CheckpointMismatchError, DataError,
           FileExistsError, FileNotFoundError) as e:
     # Expected mistakes get their message, not a traceback.

@@ -3,6 +3,10 @@
 Per step the loop only feeds the prefetched batch and, every `log_every` steps, reads the metrics
 back. Everything the loop owns is resumable: the batch is a function of (seed, step), the keys are
 fold_in(key, step), and the state is checkpointed with orbax; SIGINT/SIGTERM save before exiting.
+
+Several processes (`--distributed`, slotlifter_jax/multihost.py) run this same loop: each gathers
+only its own scenes of every batch, all of them take part in every checkpoint save and restore and
+compute the same validation, and process 0 alone writes files and logs progress.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from tqdm import tqdm
 
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import model as model_lib
+from slotlifter_jax import multihost
 from slotlifter_jax import train_step as step_lib
 from slotlifter_jax import emergence
 from slotlifter_jax import validation
@@ -92,6 +97,16 @@ class MetricWriter:
   def close(self):
     self._jsonl.close()
     self._tb.close()
+
+
+class _NoWriter:
+  """The MetricWriter of the processes other than process 0: they write nothing."""
+
+  def write(self, step: int, kind: str, values: dict) -> None:
+    pass
+
+  def close(self):
+    pass
 
 
 SAMPLERS = ("host", "device")
@@ -175,10 +190,12 @@ def collapse_settled_step(train_config) -> int:
 def _restart_after_collapse(config, workdir: str, step: int) -> ml_collections.ConfigDict:
   """Moves this attempt's files to workdir/collapsed/seed_<seed>/ and returns the next config."""
   archive = os.path.join(workdir, COLLAPSED_DIR, f"seed_{config.seed}")
-  os.makedirs(archive, exist_ok=False)
-  for name in _ATTEMPT_FILES:
-    if os.path.exists(os.path.join(workdir, name)):
-      os.replace(os.path.join(workdir, name), os.path.join(archive, name))
+  if multihost.is_primary():
+    os.makedirs(archive, exist_ok=False)
+    for name in _ATTEMPT_FILES:
+      if os.path.exists(os.path.join(workdir, name)):
+        os.replace(os.path.join(workdir, name), os.path.join(archive, name))
+  multihost.barrier("collapse_restart")  # the next attempt starts from an empty run folder
   new = ml_collections.ConfigDict(config.to_dict())
   new.seed = int(config.seed) + 1
   new.train.collapse_restarts = int(config.train.collapse_restarts) - 1
@@ -186,6 +203,15 @@ def _restart_after_collapse(config, workdir: str, step: int) -> ml_collections.C
                   "from seed %d (%d restarts left)", step, archive, new.seed,
                   new.train.collapse_restarts)
   return new
+
+
+def _process_local(tree):
+  """This process's copy of a replicated tree: with several processes, validation renders on the
+  local device alone (the same program and numbers as on one process, with no cross-process step
+  in it); with one process, the tree itself, as before."""
+  if jax.process_count() == 1:
+    return tree
+  return jax.tree.map(lambda x: x.addressable_data(0), tree)
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
@@ -206,7 +232,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     config.seed = int(saved["seed"])
     config.train.collapse_restarts = int(saved["train"].get("collapse_restarts", 0))
     logging.info("resuming the restarted attempt with seed %d", config.seed)
-  config = embedded.resolve_data(config)
+  # Process 0 generates an absent embedded set and the others then read it. The barrier in it also
+  # means that every process has read config.json (above) before process 0 rewrites it (below).
+  config = multihost.primary_first(lambda: embedded.resolve_data(config), "data")
   train_scenes = registry.load_split(config.data, "train")
   val_scenes = registry.load_split(config.data, "val")
   logging.info("data: %d train / %d val scenes from %s", len(train_scenes), len(val_scenes),
@@ -229,19 +257,21 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
       novel_ray_prob=config.data.novel_ray_prob, seed=config.seed,
       ray_sampling=config.data.ray_sampling, contrast_mix=config.data.contrast_mix)
   on_device = _check_sampler(config, train_scenes)
-  ckpt_lib.save_config(config, workdir, step=ckpt_lib.latest_step_on_disk(workdir))
+  if multihost.is_primary():
+    ckpt_lib.save_config(config, workdir, step=ckpt_lib.latest_step_on_disk(workdir))
   model = model_lib.build_model(config)
   key = jax.random.key(config.seed, impl=config.train.prng_impl)
   state = step_lib.init_state(model, config, sampler.batch(0), jax.random.fold_in(key, 0))
   num_params = sum(x.size for x in jax.tree.leaves(state.params))
   logging.info("model: %s parameters", f"{num_params:,}")
 
+  # Every process opens the managers (orbax creates the folders on process 0 and waits for it).
   checkpoints = ckpt_lib.Checkpoints(workdir, keep=config.train.keep_checkpoints)
-  if checkpoints.latest_step() is not None:
-    state = checkpoints.restore(state)
-    logging.info("resumed from step %d", int(state.step))
   replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
   state = jax.device_put(state, replicated)
+  if checkpoints.latest_step() is not None:  # restored straight into the replicated layout
+    state = checkpoints.restore(state)
+    logging.info("resumed from step %d", int(state.step))
   block = int(config.train.get("steps_per_dispatch", 1))
   if on_device:
     device_scenes = jax.device_put(
@@ -256,8 +286,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
       return blocks[n](state, device_scenes)
   else:
     train_step = step_lib.make_train_step(model, config, key=jax.random.fold_in(key, 1), mesh=mesh)
-  validator = validation.Validator(model, config, val_scenes[:config.train.eval_scenes], workdir)
-  writer = MetricWriter(workdir)
+  # Each process gathers only its scenes of every batch (all of them when it is the only one).
+  rows = None if jax.process_count() == 1 else multihost.local_rows(
+      step_lib.batch_sharding(mesh), config.train.batch_scenes)
+  primary = multihost.is_primary()
+  validator = validation.Validator(model, config, val_scenes[:config.train.eval_scenes], workdir,
+                                   write_pictures=primary)
+  writer = MetricWriter(workdir) if primary else _NoWriter()
 
   start = int(state.step)
   total = config.train.num_steps
@@ -265,13 +300,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   restart = False
   interrupted = None
   batches = None if on_device else pipeline.prefetch(
-      (sampler.batch(s) for s in range(start, total)), size=2)
+      (sampler.batch(s, rows) for s in range(start, total)), size=2)
   clock = _RunClock(workdir)
   t_log = time.time()
   done = start
   try:
     with _StopFlag() as stop, tqdm(total=total, initial=start, desc="train", unit="step",
-                                   dynamic_ncols=True) as bar:
+                                   dynamic_ncols=True, disable=not primary) as bar:
       while done < total:
         if on_device:
           n = block if done % block == 0 and done + block <= total else 1
@@ -280,7 +315,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
           in_row_max = stacked["nonfinite_in_row"]
         else:
           n = 1
-          batch = step_lib.shard_batch(next(batches), mesh)
+          batch = step_lib.assemble_batch(next(batches), mesh, config.train.batch_scenes)
           state, metrics = train_step(state, batch)
           in_row_max = metrics["nonfinite_in_row"]
         # Waiting for the new state before dispatching the next step keeps XLA from allocating
@@ -306,7 +341,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
                 f"{in_row} non-finite steps in a row at step {done}; stopping. The last good "
                 f"checkpoint in {workdir}/checkpoints is intact.")
         if done % config.train.eval_every == 0 or done == total:
-          last_val = validator.run(state.params, done)
+          last_val = validator.run(_process_local(state.params), done)
           last_val["wall_s"] = clock.elapsed()
           last_val["num_val_scenes"] = len(validator.scenes)
           writer.write(done, "val", last_val)
@@ -324,10 +359,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
               break
         if done % config.train.checkpoint_every == 0 or done == total:
           checkpoints.save(state)
-        if stop.signal is not None:
-          logging.warning("signal %d: checkpointing at step %d and exiting", stop.signal, done)
+        # A signal may reach one process only, or each at another step: all stop at the same step.
+        signum = multihost.max_over_processes(stop.signal or 0)
+        if signum:
+          logging.warning("signal %d: checkpointing at step %d and exiting", signum, done)
           checkpoints.save(state, force=True)
-          interrupted = Interrupted(stop.signal, done)
+          interrupted = Interrupted(signum, done)
           break
   finally:
     checkpoints.wait()
@@ -335,7 +372,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     writer.close()
     if batches is not None:
       batches.close()
-  _record_emergence(workdir)
+  if primary:
+    _record_emergence(workdir)
   if interrupted is not None:
     raise interrupted
   if restart:

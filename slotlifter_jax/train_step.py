@@ -305,3 +305,16 @@ def shard_batch(batch: dict, mesh: Mesh) -> dict:
     x = np.asarray(x)
     return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
   return {k: put(v) for k, v in batch.items()}
+
+
+def assemble_batch(local: dict, mesh: Mesh, global_size: int) -> dict:
+  """The global batch from this process's rows of it (`multihost.local_rows(batch_sharding(mesh),
+  global_size)`, in that order). With one process those rows are the whole batch and this is
+  `shard_batch`; with several, each process passes only its own rows and none holds the rest."""
+  if jax.process_count() == 1:
+    return shard_batch(local, mesh)
+  sharding = batch_sharding(mesh)
+  def put(x):
+    x = np.asarray(x)
+    return jax.make_array_from_process_local_data(sharding, x, (global_size,) + x.shape[1:])
+  return {k: put(v) for k, v in local.items()}

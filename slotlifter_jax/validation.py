@@ -44,11 +44,14 @@ def collapse_statistics(*, segmentation, rendered, target, foreground=None) -> d
 class Validator:
   """Renders a few validation scenes during training, scores them and writes a PNG panel."""
 
-  def __init__(self, model, config, scenes: list[Scene], workdir: str, *, num_pictures: int = 3):
+  def __init__(self, model, config, scenes: list[Scene], workdir: str, *, num_pictures: int = 3,
+               write_pictures: bool = True):
     self.renderer = views_lib.SceneRenderer(model, config)
     self.scenes = scenes
     self.workdir = workdir
     self.num_pictures = num_pictures
+    # False on the processes other than process 0 of a multi-process run: they score, never write.
+    self.write_pictures = write_pictures
     self.use_masks = bool(config.data.has_masks)  # never score made-up masks (docs/method.md §3.3)
     self.has_masks = self.use_masks and all(s.masks is not None for s in scenes)
     self.near, self.far = config.render.near, config.render.far
@@ -92,6 +95,6 @@ class Validator:
     result["score"] = result.get(score_key, np.nan)
     if not np.isfinite(result["score"]):
       result["score"] = -1.0
-    if rows:
+    if rows and self.write_pictures:
       vis.save_png(os.path.join(self.workdir, "val", f"step_{step:07d}.png"), vis.grid(rows))
     return result

@@ -24,6 +24,8 @@ MAIN = re.compile(r"\.venv/bin/python -m slotlifter_jax\.main ([^\n`]+)")
 RUN_FLAGS = {"train": {"--config", "--workdir"},
              "eval": {"--config", "--workdir", "--mode"},
              "render": {"--config", "--workdir", "--mode", "--scenes"}}
+# The multi-process flags: tests/test_distributed.py runs them (and checks the README's use of them).
+DISTRIBUTED_FLAGS = {"--distributed", "--coordinator_address", "--num_processes", "--process_id"}
 
 
 def readme_commands() -> list[list[str]]:
@@ -43,7 +45,8 @@ def test_every_readme_command_is_one_this_file_runs():
   for args in commands:
     mode, flags = mode_and_flags(args)
     assert mode in RUN_FLAGS, f"README: mode {mode!r} of {' '.join(args)} is not tested here"
-    untested = flags - RUN_FLAGS[mode] - {"--max_scenes"}  # --max_scenes: see the eval step below
+    # --max_scenes: see the eval step below; the multi-process flags: tests/test_distributed.py.
+    untested = flags - RUN_FLAGS[mode] - {"--max_scenes"} - DISTRIBUTED_FLAGS
     assert not untested, f"README: {' '.join(args)} uses {sorted(untested)}, not tested here"
     config = next(a.split("=", 1)[1] for a in args if a.startswith("--config="))
     assert os.path.isfile(os.path.join(REPO, config.split(":")[0])), config
@@ -52,7 +55,8 @@ def test_every_readme_command_is_one_this_file_runs():
 def _readme_command(mode: str) -> list[str]:
   """The README's quick command of `mode`, with the smoke variant."""
   for args in readme_commands():
-    if mode_and_flags(args)[0] == mode and "configs/clevr.py:quick" in " ".join(args):
+    if (mode_and_flags(args)[0] == mode and "configs/clevr.py:quick" in " ".join(args)
+        and "--distributed" not in args):
       return [a.replace("configs/clevr.py:quick", "configs/clevr.py:smoke") for a in args]
   raise AssertionError(f"README shows no quick {mode} command")
 
@@ -121,6 +125,7 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
     (["--config=configs/clevr.py:smoke", "--config.data.root=/nonexistent"],
      "/nonexistent: data.root does not exist"),
     (["--config=configs/clevr.py:smoke", "--workdir=a_file"], "a_file: exists and is not a directory"),
+    (["--config=configs/clevr.py:smoke", "--num_processes=2"], "--process_id need --distributed"),
 ])
 def test_a_bad_command_line_gets_one_line_and_creates_nothing(tmp_path, args, message):
   shutil.copytree(os.path.join(REPO, "configs"), tmp_path / "configs")

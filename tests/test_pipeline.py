@@ -78,6 +78,21 @@ def test_reproducible_from_seed_and_step_alone():
                             sampler_for(scenes, seed=4).batch(7)["ray_directions"])
 
 
+@pytest.mark.parametrize("pooled", [False, True])
+def test_a_process_share_of_a_batch_is_those_rows_of_the_whole_batch(pooled):
+  """Each process of a multi-process run gathers only its rows (slotlifter_jax/multihost.py); the
+  draw is the whole batch's, so the shares put together are the single-process batch."""
+  scenes = [make_scene(f"s{i}", seed=i, pooled=pooled) for i in range(5)]
+  sampler = sampler_for(scenes, b=4)
+  for step in (0, 9):
+    whole = sampler.batch(step)
+    for rows in ([0, 1], [2, 3], [1], [3, 0]):
+      part = sampler.batch(step, np.array(rows))
+      assert set(part) == set(whole)
+      for k in whole:
+        np.testing.assert_array_equal(part[k], whole[k][rows], err_msg=k)
+
+
 def test_rays_pass_through_their_pixel_and_carry_its_colour():
   scenes = [make_scene(f"s{i}", seed=i) for i in range(3)]
   sampler = sampler_for(scenes, b=3, r=29)

@@ -122,6 +122,10 @@ class BatchDraw:
   ray_cols: np.ndarray  # [B, R] int32
   novel_only: np.ndarray  # [B] bool: the rays were restricted to non-source views
 
+  def take(self, rows) -> "BatchDraw":
+    """The draw of batch elements `rows` only (a process's share of a global batch)."""
+    return BatchDraw(**{f.name: getattr(self, f.name)[rows] for f in dataclasses.fields(self)})
+
 
 class BatchSampler:
   """Draws the step-t batch of a scene list; a pure function of (scenes, settings, seed, t)."""
@@ -244,9 +248,14 @@ class BatchSampler:
     batch["scene_index"] = draw.scene_index.astype(np.int32)
     return batch
 
-  def batch(self, step: int) -> dict[str, np.ndarray]:
-    """The batch of step `step`."""
-    return self.gather(self.draw(step))
+  def batch(self, step: int, rows=None) -> dict[str, np.ndarray]:
+    """The batch of step `step`; with `rows` (indices into the batch), only those elements.
+
+    The draw is always that of the whole batch (its random choices come one after another from
+    one generator), so `batch(t, rows)` is `batch(t)` restricted to `rows`, and processes that
+    each gather their own rows together hold exactly the single-process batch."""
+    draw = self.draw(step)
+    return self.gather(draw if rows is None else draw.take(rows))
 
 
 class _End:

@@ -424,6 +424,7 @@ def render_scenes(config: ml_collections.ConfigDict, workdir: str, *, split: str
   renderer = SlotRenderer(run.model, run.config)
   near, far = float(run.config.render.near), float(run.config.render.far)
   out_dir = os.path.join(workdir, "render", split)
+  write = jax.process_index() == 0  # several processes render the same scenes; process 0 writes
   written = []
   for i in tqdm(indices, desc=f"render {split}", unit="scene", disable=not progress):
     scene = run.scenes[i]
@@ -432,15 +433,17 @@ def render_scenes(config: ml_collections.ConfigDict, workdir: str, *, split: str
     views = renderer.render(run.params, scene, cam_to_world=scene.cam_to_world,
                             intrinsics=scene.intrinsics)
     panel = os.path.join(out_dir, f"scene_{i:04d}_panel.png")
-    vis.save_png(panel, scene_panel(scene, views, near=near, far=far,
-                                    checkpoint=checkpoint_name(run.checkpoint_dir),
-                                    step=run.step))
+    if write:
+      vis.save_png(panel, scene_panel(scene, views, near=near, far=far,
+                                      checkpoint=checkpoint_name(run.checkpoint_dir),
+                                      step=run.step))
     source = scene.source_indices[0]
     poses = orbit_cam_to_world(source_cam_to_world=scene.cam_to_world[source],
                                num_frames=num_orbit_frames)
     intrinsics = np.broadcast_to(scene.intrinsics[source], (len(poses), 3, 3))
     orbit = renderer.render(run.params, scene, cam_to_world=poses, intrinsics=intrinsics)
     gif = os.path.join(out_dir, f"scene_{i:04d}_orbit.gif")
-    save_gif(gif, orbit_frames(orbit))
+    if write:
+      save_gif(gif, orbit_frames(orbit))
     written.append(RenderedFiles(scene_index=i, scene_name=scene.name, panel=panel, orbit=gif))
   return written
