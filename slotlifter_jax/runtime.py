@@ -8,13 +8,13 @@ The allocator can only be swapped at exec time, so `main` and the benchmark re-e
 once with LD_PRELOAD set. Nothing here changes results, only speed and memory.
 
 SLOTLIFTER_ALLOCATOR picks it: "auto" (default: the first of AUTO_ORDER that is installed, else
-the system one), "tcmalloc", "mimalloc", "jemalloc" or "system" (no preload). tcmalloc comes first
-because it reuses the freed temp buffer: on the paper-sized step (experiments/bench.py config A,
-9.6 GB of XLA temp) jemalloc with decay off kept mapping fresh buffers until the benchmark was
-OOM-killed, tcmalloc did not (`experiments/rss_per_step.py`; figures in experiments/README.md).
-mimalloc is what a fresh machine has: the `cmeel-mimalloc` wheel, a dependency of this package,
-ships it inside the virtual environment, so `pip install` alone gives a retaining allocator
-(`python experiments/bench.py --allocators=system,mimalloc,tcmalloc` compares them).
+the system one), "mimalloc", "tcmalloc", "jemalloc" or "system" (no preload). mimalloc comes
+first: the `cmeel-mimalloc` wheel, a dependency of this package, ships it inside the virtual
+environment, so `pip install` alone gives a retaining allocator, and, configured never to purge,
+it serves the temp buffer as fast as tcmalloc with half tcmalloc's peak memory on the paper-sized
+step (`python experiments/bench.py --configs=B,A --allocators=system,mimalloc,tcmalloc`:
+experiments/README.md, docs/performance.md §1). jemalloc with decay off kept mapping fresh
+buffers on that step until the benchmark was OOM-killed (`experiments/rss_per_step.py`).
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ _CANDIDATES = {
     "tcmalloc": ("libtcmalloc_minimal.so.4", "libtcmalloc.so.4", "libtcmalloc_minimal.so"),
     "mimalloc": ("libmimalloc.so.3", "libmimalloc.so.2", "libmimalloc.so"),
 }
-AUTO_ORDER = ("tcmalloc", "mimalloc", "jemalloc")
+AUTO_ORDER = ("mimalloc", "tcmalloc", "jemalloc")
 ALLOCATORS = ("auto",) + AUTO_ORDER + ("system",)
 _LIB_DIRS = ("/usr/lib/x86_64-linux-gnu", "/usr/lib/aarch64-linux-gnu", "/usr/lib64", "/usr/lib",
              "/usr/local/lib", "/opt/homebrew/lib")
