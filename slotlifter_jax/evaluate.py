@@ -369,7 +369,7 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
   result = EvalResult(split=split, summary=summary, per_scene=per_scene, scene_names=names,
                       checkpoint_step=run.step, checkpoint_dir=run.checkpoint_dir, timing=timing,
                       metrics_path=metrics_path, per_scene_path=per_scene_path)
-  if jax.process_index() != 0:  # every host evaluates the same scenes; one writes
+  if not multihost.is_primary():  # every host evaluates the same scenes; one writes
     return result
 
   buf = io.StringIO()

@@ -90,7 +90,8 @@ def main(argv):
     return
   from slotlifter_jax import evaluate
   from slotlifter_jax.rendering import pictures
-  say = print if jax.process_index() == 0 else (lambda *a: None)  # one table, not one per process
+  from slotlifter_jax import multihost
+  say = print if multihost.is_primary() else (lambda *a: None)  # one table, not one per process
   try:
     if FLAGS.mode == "eval":
       result = evaluate.evaluate_split(

@@ -52,6 +52,7 @@ from tqdm import tqdm
 
 from slotlifter_jax import evaluate
 from slotlifter_jax import model as model_lib
+from slotlifter_jax import multihost
 from slotlifter_jax import vis
 from slotlifter_jax.data import cameras
 from slotlifter_jax.data.types import Scene
@@ -424,7 +425,7 @@ def render_scenes(config: ml_collections.ConfigDict, workdir: str, *, split: str
   renderer = SlotRenderer(run.model, run.config)
   near, far = float(run.config.render.near), float(run.config.render.far)
   out_dir = os.path.join(workdir, "render", split)
-  write = jax.process_index() == 0  # several processes render the same scenes; process 0 writes
+  write = multihost.is_primary()  # several processes render the same scenes; process 0 writes
   written = []
   for i in tqdm(indices, desc=f"render {split}", unit="scene", disable=not progress):
     scene = run.scenes[i]
