@@ -47,9 +47,9 @@ class Projection(NamedTuple):
   depth: jax.Array  # [...] camera-space z; the point is in front of the camera iff depth > 0
 
 
-def _matvec(matrix: jax.Array, vector: jax.Array) -> jax.Array:
+def _matvec(matrix: jax.Array, vector: jax.Array, xp=jnp) -> jax.Array:
   """[..., 3, 3] @ [..., 3] -> [...] with NumPy broadcasting of the leading dims."""
-  return jnp.matmul(matrix, vector[..., None])[..., 0]
+  return xp.matmul(matrix, vector[..., None])[..., 0]
 
 
 def image_pixels(height: int, width: int) -> jax.Array:
@@ -59,34 +59,39 @@ def image_pixels(height: int, width: int) -> jax.Array:
   return jnp.stack([u, v], axis=-1)  # [H, W, 2]
 
 
-def pix_to_cam(*, pix: jax.Array, intrinsics: jax.Array) -> jax.Array:
+def pix_to_cam(*, pix: jax.Array, intrinsics: jax.Array, xp=jnp) -> jax.Array:
   """Back-projects pixels to camera-space points on the plane z = 1: [..., 2] -> [..., 3].
 
   Uses the exact inverse of the upper-triangular K, skew included, so that `cam_to_pix` undoes it
   (the official code ignores skew here but not in the projection; DTU's decomposed K has a tiny one).
+  xp: the array namespace, `jax.numpy` or `numpy` (see `pixel_rays`).
   """
   fx, fy = intrinsics[..., 0, 0], intrinsics[..., 1, 1]
   skew, cx, cy = intrinsics[..., 0, 1], intrinsics[..., 0, 2], intrinsics[..., 1, 2]
   y = (pix[..., 1] - cy) / fy
   x = (pix[..., 0] - cx - skew * y) / fx
-  return jnp.stack([x, y, jnp.ones_like(x)], axis=-1)
+  return xp.stack([x, y, xp.ones_like(x)], axis=-1)
 
 
-def pixel_rays(*, cam_to_world: jax.Array, intrinsics: jax.Array, pix: jax.Array) -> Rays:
+def pixel_rays(*, cam_to_world: jax.Array, intrinsics: jax.Array, pix: jax.Array,
+               xp=jnp) -> Rays:
   """Rays through pixel centres.
 
   Args:
     cam_to_world: [..., 4, 4] OpenCV pose; leading dims broadcast against pix's (e.g. [B, 1, 4, 4]).
     intrinsics: [..., 3, 3] pixel-unit K, same broadcasting.
     pix: [..., 2] (u, v) pixel coordinates, centres at integers.
+    xp: the array namespace. `numpy` computes on the host in the inputs' precision (the batch
+      pipeline draws rays per step in float64 on a thread, with no device dispatch); `jax.numpy`
+      (default) traces into the model and the renderers.
 
   Returns:
     Rays with origins and unit directions, both [..., 3] (the broadcast leading shape).
   """
-  dirs_cam = pix_to_cam(pix=pix, intrinsics=intrinsics)  # [..., 3], z = 1
-  dirs = _matvec(cam_to_world[..., :3, :3], dirs_cam)  # [..., 3]
-  dirs = dirs / jnp.linalg.norm(dirs, axis=-1, keepdims=True)  # never zero: z component is 1
-  origins = jnp.broadcast_to(cam_to_world[..., :3, 3], dirs.shape)
+  dirs_cam = pix_to_cam(pix=pix, intrinsics=intrinsics, xp=xp)  # [..., 3], z = 1
+  dirs = _matvec(cam_to_world[..., :3, :3], dirs_cam, xp)  # [..., 3]
+  dirs = dirs / xp.linalg.norm(dirs, axis=-1, keepdims=True)  # never zero: z component is 1
+  origins = xp.broadcast_to(cam_to_world[..., :3, 3], dirs.shape)
   return Rays(origins=origins, directions=dirs)
 
 

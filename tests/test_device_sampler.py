@@ -10,7 +10,6 @@ import pytest
 
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import train_step as step_lib
-from slotlifter_jax.data import cameras
 from slotlifter_jax.data import device_sampler
 from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
@@ -57,11 +56,15 @@ def test_batch_is_the_drawn_pixels_rays_and_sources():
       # uint8 / 255 on the device may differ from NumPy's float32 division by one ulp (XLA may
       # multiply by the reciprocal).
       np.testing.assert_allclose(b["target_rgb"][i], scene.images[views, rows, cols], atol=1e-7)
-      ref = cameras.pixel_rays(cam_to_world=scene.cam_to_world[views],
-                               intrinsics=scene.intrinsics[views], cols=cols.astype(np.float64),
-                               rows=rows.astype(np.float64))
-      np.testing.assert_allclose(b["ray_origins"][i], ref.origins, atol=1e-6)
-      np.testing.assert_allclose(b["ray_directions"][i], ref.directions, atol=1e-5)
+      # Reference rays: R·K⁻¹[u, v, 1] with a general float64 inverse, normalised.
+      c2w = scene.cam_to_world[views].astype(np.float64)  # [R, 4, 4]
+      pix_h = np.stack([cols, rows, np.ones_like(cols)], axis=-1).astype(np.float64)  # [R, 3]
+      d_cam = np.einsum("rij,rj->ri", np.linalg.inv(scene.intrinsics[views].astype(np.float64)),
+                        pix_h)
+      d = np.einsum("rij,rj->ri", c2w[:, :3, :3], d_cam)
+      d /= np.linalg.norm(d, axis=-1, keepdims=True)
+      np.testing.assert_allclose(b["ray_origins"][i], c2w[:, :3, 3], atol=1e-6)
+      np.testing.assert_allclose(b["ray_directions"][i], d, atol=1e-5)
       src = list(scene.source_indices)
       np.testing.assert_allclose(b["source_images"][i], scene.images[src], atol=1e-7)
       np.testing.assert_array_equal(b["source_cam_to_world"][i], scene.cam_to_world[src])

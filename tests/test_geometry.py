@@ -42,6 +42,23 @@ def test_pixel_rays_match_numpy_inverse_and_broadcast():
   np.testing.assert_allclose(np.linalg.norm(np.asarray(rays.directions), axis=-1), 1.0, atol=1e-6)
 
 
+def test_pixel_rays_in_numpy_stay_on_the_host_in_float64():
+  """xp=np (the host batch pipeline's call): NumPy arrays in float64, no JAX arrays, and the same
+  rays as the float64 general-inverse reference to float64 rounding."""
+  rng = np.random.default_rng(3)
+  cams, ks = random_cameras(rng, B, H, W)
+  pix = rng.uniform(-2, W + 2, size=(B, R, 2))
+  rays = geometry.pixel_rays(cam_to_world=cams[:, None], intrinsics=ks[:, None], pix=pix, xp=np)
+  assert type(rays.directions) is np.ndarray and type(rays.origins) is np.ndarray
+  assert rays.directions.dtype == np.float64
+  chex.assert_shape([rays.origins, rays.directions], (B, R, 3))
+  d_cam = np.einsum("bij,brj->bri", np.linalg.inv(ks), _homogeneous_pixels(pix))
+  d = np.einsum("bij,brj->bri", cams[:, :3, :3], d_cam)
+  d /= np.linalg.norm(d, axis=-1, keepdims=True)
+  np.testing.assert_allclose(rays.directions, d, atol=1e-12)
+  np.testing.assert_array_equal(rays.origins, np.broadcast_to(cams[:, None, :3, 3], (B, R, 3)))
+
+
 def test_principal_point_ray_is_camera_forward():
   rng = np.random.default_rng(1)
   cams, ks = random_cameras(rng, 1, 128, 128)

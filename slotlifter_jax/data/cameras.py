@@ -222,30 +222,3 @@ def nearest_sources(*, cam_to_world: np.ndarray, target_idx: int, pool: Sequence
   dist = view_distances(cam_to_world=cam_to_world, target_idx=target_idx)[candidates]
   order = np.argsort(dist, kind="stable")[:n]
   return tuple(int(i) for i in candidates[order])
-
-
-@dataclasses.dataclass(frozen=True)
-class Rays:
-  origins: np.ndarray  # [..., 3] camera centre, world frame
-  directions: np.ndarray  # [..., 3] unit length, world frame
-
-
-def pixel_rays(*, cam_to_world: np.ndarray, intrinsics: np.ndarray, cols: np.ndarray,
-               rows: np.ndarray) -> Rays:
-  """Rays through pixel centres (u, v) = (cols, rows): direction = R·K⁻¹[u, v, 1], normalised.
-
-  Args:
-    cam_to_world: [..., 4, 4] one pose per ray (the leading shape of `cols`).
-    intrinsics: [..., 3, 3] one K per ray.
-    cols, rows: [...] integer or float pixel coordinates.
-  """
-  fx, fy = intrinsics[..., 0, 0], intrinsics[..., 1, 1]
-  skew, cx, cy = intrinsics[..., 0, 1], intrinsics[..., 0, 2], intrinsics[..., 1, 2]
-  # Exact inverse of the upper-triangular K (skew included), as geometry.pix_to_cam does.
-  y = (rows - cy) / fy
-  x = (cols - cx - skew * y) / fx
-  dirs_cam = np.stack([x, y, np.ones_like(x)], axis=-1)  # [..., 3]
-  dirs = np.einsum("...ij,...j->...i", cam_to_world[..., :3, :3], dirs_cam)  # [..., 3]
-  dirs = dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)  # never zero: camera z is 1
-  origins = np.broadcast_to(cam_to_world[..., :3, 3], dirs.shape)
-  return Rays(origins=origins.astype(np.float32), directions=dirs.astype(np.float32))

@@ -42,6 +42,7 @@ from typing import Iterable, Iterator, Optional, Sequence
 
 import numpy as np
 
+from slotlifter_jax import geometry
 from slotlifter_jax.data import cameras
 from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
@@ -237,10 +238,10 @@ class BatchSampler:
       out["source_cam_to_world"].append(scene.cam_to_world[src])
       out["source_intrinsics"].append(scene.intrinsics[src])
       view = draw.ray_views[b]  # [R]
-      rays = cameras.pixel_rays(cam_to_world=scene.cam_to_world[view],
-                                intrinsics=scene.intrinsics[view],
-                                cols=draw.ray_cols[b].astype(np.float64),
-                                rows=draw.ray_rows[b].astype(np.float64))
+      pix = np.stack([draw.ray_cols[b], draw.ray_rows[b]], axis=-1).astype(np.float64)  # [R, 2]
+      rays = geometry.pixel_rays(cam_to_world=scene.cam_to_world[view].astype(np.float64),
+                                 intrinsics=scene.intrinsics[view].astype(np.float64), pix=pix,
+                                 xp=np)
       out["ray_origins"].append(rays.origins)
       out["ray_directions"].append(rays.directions)
       out["target_rgb"].append(scene.images[view, draw.ray_rows[b], draw.ray_cols[b]])  # [R, 3]
