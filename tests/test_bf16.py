@@ -310,3 +310,27 @@ def test_bf16_training_loss_tracks_float32(grad_fns, setup):
   drift_reference = _rms(ref, l32)
   assert 0.0 < drift < 2.0 * np.sqrt(3.0) * drift_reference, (drift, drift_reference,
                                                                 np.stack([l32, l16, ref]))
+
+
+def test_bf16_traces_with_every_model_switch():
+  """The other layouts (fine pass, decoder blocks under nn.scan + remat, MLP density, slot
+  position embedding, two source views) trace in bf16 (nn.scan needs its carry h to keep its
+  dtype, float32) and give float32 renders and gradients; shapes only, nothing compiled."""
+  config = _config("bfloat16")
+  config.render.num_fine_samples = 5
+  config.model.remat_scan = True
+  config.model.density_mode = "mlp"
+  config.model.slot_position_embedding = True
+  config.data.num_source_views = 2
+  model = model_lib.build_model(config)
+  batch = fake_batch(config)
+  params = jax.eval_shape(lambda: step_lib.init_state(
+      model, config, batch, jax.random.key(0, impl="rbg")).params)
+  grad_fn = step_lib.make_grad_fn(model, config)
+  (loss, _), grads = jax.eval_shape(lambda p: grad_fn(
+      p, batch, jax.random.key(1), schedules.all_schedules(0, config.train)), params)
+  assert loss.dtype == jnp.float32
+  assert all(g.dtype == jnp.float32 for g in jax.tree.leaves(grads))
+  out = jax.eval_shape(_forward(model, batch), params)
+  for render in (out.render.coarse, out.render.fine):
+    assert render.colour.dtype == render.depth.dtype == render.segmentation.dtype == jnp.float32
