@@ -3,6 +3,7 @@
   python experiments/bench.py                         # every configuration below, ~15 min on 2 cores
   python experiments/bench.py --configs=B,quick --steps=10
   python experiments/bench.py --configs=B,A --allocators=system,mimalloc,tcmalloc
+  python experiments/bench.py --configs=A,B --dtypes=float32,bfloat16
 
 For each configuration, in a fresh process (so its peak memory is its own) that runs exactly what
 `python -m slotlifter_jax.main` runs (same allocator preload, XLA flags, mesh and jitted step):
@@ -19,6 +20,12 @@ With --allocators every configuration is measured once per allocator (SLOTLIFTER
 slotlifter_jax/runtime.py: system = glibc malloc, mimalloc from the cmeel-mimalloc wheel, tcmalloc
 or jemalloc where installed), one after the other in the same call, and stored as
 "<config>@<allocator>"; an allocator that is not installed is reported and skipped.
+
+With --dtypes every configuration (and allocator) is measured once per `model.dtype` (float32;
+bfloat16 = bf16 matmuls and convolutions with float32 parameters, slotlifter_jax/model.py
+"Numerics"), stored as "<config>@<dtype>" (or "<config>@<allocator>@<dtype>"). FLOPs, the matmul
+peak and MFU stay float32-based so that rows compare; a bfloat16 row also records the peak of a
+bf16 2048² matmul (`matmul_peak_dtype_gflops`), the yardstick of its own compute dtype.
 
 Configurations (issue #7; every other setting is the paper's, configs/clevr.py):
   A           128×128, V = 1, K = 8, 96 samples, 2 scenes × 1024 rays
@@ -67,16 +74,20 @@ flags.DEFINE_string("out", os.path.join(REPO, "experiments", "results"), "Result
 flags.DEFINE_list("allocators", [],
                   "Measure each configuration under each of these SLOTLIFTER_ALLOCATOR values "
                   "(e.g. system,mimalloc,tcmalloc); empty: this process's allocator only.")
+flags.DEFINE_list("dtypes", [],
+                  "Measure each configuration with each of these model.dtype values "
+                  "(float32,bfloat16); empty: the configuration's own (float32).")
 flags.DEFINE_string("worker", None, "Internal: measure this one configuration in this process.")
+flags.DEFINE_string("worker_dtype", None, "Internal: the worker's model.dtype (None: as configured).")
 flags.DEFINE_string("worker_json", None, "Internal: where the worker writes its result.")
 FLAGS = flags.FLAGS
 
 
-def _matmul_peak_gflops(n: int = 2048, repeats: int = 10) -> float:
+def _matmul_peak_gflops(n: int = 2048, repeats: int = 10, dtype: str = "float32") -> float:
   import jax
   import jax.numpy as jnp
-  a = jax.random.normal(jax.random.key(0), (n, n), jnp.float32)
-  b = jax.random.normal(jax.random.key(1), (n, n), jnp.float32)
+  a = jax.random.normal(jax.random.key(0), (n, n), dtype)
+  b = jax.random.normal(jax.random.key(1), (n, n), dtype)
   f = jax.jit(jnp.matmul)
   f(a, b).block_until_ready()
   times = []
@@ -114,19 +125,20 @@ def _peak_rss_bytes() -> int:
   return peak if peak is not None else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def measure(name: str, steps: int, render_repeats: int) -> dict:
+def measure(name: str, steps: int, render_repeats: int, dtype: str | None = None) -> dict:
   import jax
   import numpy as np
   from slotlifter_jax import flops as flops_lib
   from slotlifter_jax.rendering import views as views_lib
 
-  wanted = bench_common.config(name)
+  wanted = bench_common.config(name, dtype)
   train_scenes = bench_common.scenes(wanted.train.batch_scenes, wanted.data.image_size, seed=0)
   render_scene = bench_common.scenes(1, RENDER_SIZE, seed=1)[0]
   gc.collect()
   peak_reset = _reset_peak_rss()  # what follows is what training holds, not the generator
   rss_before = _status_bytes("VmRSS") or 0
-  config, model, state, batches, train_step = bench_common.setup_step(name, steps + 2, train_scenes)
+  config, model, state, batches, train_step = bench_common.setup_step(name, steps + 2, train_scenes,
+                                                                      dtype)
   c = config.train
   # A device-sampled configuration's call is a block of steps_per_dispatch steps.
   per_call = int(c.steps_per_dispatch) if config.data.sampler == "device" else 1
@@ -178,6 +190,8 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
     render_times.append(time.perf_counter() - t)
 
   peak = _matmul_peak_gflops()
+  compute_dtype = str(config.model.get("dtype", "float32"))
+  dtype_peak = peak if compute_dtype == "float32" else _matmul_peak_gflops(dtype=compute_dtype)
   step_s = statistics.median(times)
   achieved = step_flops / step_s / 1e9
   return dict(
@@ -186,6 +200,7 @@ def measure(name: str, steps: int, render_repeats: int) -> dict:
       batch_scenes=c.batch_scenes, rays_per_scene=c.rays_per_scene,
       remat_scan=bool(config.model.remat_scan), grad_accum_chunks=int(c.grad_accum_chunks),
       ray_chunks=int(c.ray_chunks),
+      dtype=compute_dtype, matmul_peak_dtype_gflops=dtype_peak,
       prng_impl=c.prng_impl, num_params=int(sum(x.size for x in jax.tree.leaves(state.params))),
       step_s_median=step_s, step_s_min=min(times), step_s_max=max(times), steps_timed=len(times),
       steps_per_dispatch=per_call, host_batch_s=host_batch_s,
@@ -227,7 +242,7 @@ def _table(rows: list[dict]) -> str:
 def main(argv):
   del argv
   if FLAGS.worker:
-    result = measure(FLAGS.worker, FLAGS.steps, FLAGS.render_repeats)
+    result = measure(FLAGS.worker, FLAGS.steps, FLAGS.render_repeats, FLAGS.worker_dtype)
     with open(FLAGS.worker_json, "w") as f:
       json.dump(result, f)
     return
@@ -245,38 +260,46 @@ def main(argv):
   for choice in FLAGS.allocators:
     if choice not in runtime.ALLOCATORS:
       raise app.UsageError(f"--allocators: unknown {choice!r}; choose from {runtime.ALLOCATORS}")
+  from slotlifter_jax import model as model_lib  # the valid model.dtype names
+  for dtype in FLAGS.dtypes:
+    if dtype not in model_lib.COMPUTE_DTYPES:
+      raise app.UsageError(f"--dtypes: unknown {dtype!r}; choose from "
+                           f"{sorted(model_lib.COMPUTE_DTYPES)}")
   rows = []
-  for name in FLAGS.configs:
-    for choice in FLAGS.allocators or [None]:
-      key = name if choice is None else f"{name}@{choice}"
-      env = dict(os.environ)
-      if choice is not None:
-        try:
-          runtime.allocator_env(choice)
-        except RuntimeError as e:
-          print(f"[bench] {key}: skipped ({e})", flush=True)
-          continue
-        # A fresh worker picks its own allocator: drop what this process was preloaded with.
-        for var in ("LD_PRELOAD", "MALLOC_CONF", runtime.MARK, *runtime.MIMALLOC_ENV):
-          env.pop(var, None)
-        env[runtime.ENV] = choice
-      print(f"[bench] {key} …", flush=True)
-      with tempfile.TemporaryDirectory() as tmp:
-        result_path = os.path.join(tmp, "result.json")
-        cmd = [sys.executable, os.path.abspath(__file__), f"--worker={name}",
-               f"--worker_json={result_path}", f"--steps={FLAGS.steps}",
-               f"--render_repeats={FLAGS.render_repeats}"]
-        proc = subprocess.run(cmd, env=env)
-        if proc.returncode != 0:
-          print(f"[bench] {key} failed with exit code {proc.returncode}", flush=True)
-          continue
-        with open(result_path) as f:
-          result = json.load(f)
-      result["config"] = key
-      result["measured"] = dict(info, allocator=result.get("allocator", info["allocator"]))
-      previous[key] = result
-      rows.append(result)
-      print(_table([result]).splitlines()[-1], flush=True)
+  runs = [(name, choice, dtype) for name in FLAGS.configs for choice in FLAGS.allocators or [None]
+          for dtype in FLAGS.dtypes or [None]]
+  for name, choice, dtype in runs:
+    key = "@".join(x for x in (name, choice, dtype) if x is not None)
+    env = dict(os.environ)
+    if choice is not None:
+      try:
+        runtime.allocator_env(choice)
+      except RuntimeError as e:
+        print(f"[bench] {key}: skipped ({e})", flush=True)
+        continue
+      # A fresh worker picks its own allocator: drop what this process was preloaded with.
+      for var in ("LD_PRELOAD", "MALLOC_CONF", runtime.MARK, *runtime.MIMALLOC_ENV):
+        env.pop(var, None)
+      env[runtime.ENV] = choice
+    print(f"[bench] {key} …", flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+      result_path = os.path.join(tmp, "result.json")
+      cmd = [sys.executable, os.path.abspath(__file__), f"--worker={name}",
+             f"--worker_json={result_path}", f"--steps={FLAGS.steps}",
+             f"--render_repeats={FLAGS.render_repeats}"]
+      if dtype is not None:
+        cmd.append(f"--worker_dtype={dtype}")
+      proc = subprocess.run(cmd, env=env)
+      if proc.returncode != 0:
+        print(f"[bench] {key} failed with exit code {proc.returncode}", flush=True)
+        continue
+      with open(result_path) as f:
+        result = json.load(f)
+    result["config"] = key
+    result["measured"] = dict(info, allocator=result.get("allocator", info["allocator"]))
+    previous[key] = result
+    rows.append(result)
+    print(_table([result]).splitlines()[-1], flush=True)
   # Write next to, then over, the old file: an interrupted run never leaves half a JSON.
   tmp_path = out_path + ".tmp"
   with open(tmp_path, "w") as f:

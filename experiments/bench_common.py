@@ -34,8 +34,10 @@ CONFIGS = {
 }
 
 
-def config(name: str):
-  """The ml_collections config of benchmark configuration `name` (configs/clevr.py + overrides)."""
+def config(name: str, dtype: str | None = None):
+  """The ml_collections config of benchmark configuration `name` (configs/clevr.py + overrides);
+  `dtype` sets `model.dtype` ("float32" | "bfloat16", model.py "Numerics"), None keeps the
+  configuration's own (float32)."""
   sys.path.insert(0, os.path.join(REPO, "configs"))
   import clevr  # configs/clevr.py
   spec = CONFIGS[name]
@@ -43,6 +45,8 @@ def config(name: str):
   for path, value in spec["overrides"].items():
     section, field = path.split(".")
     config[section][field] = value
+  if dtype is not None:
+    config.model.dtype = dtype
   config.train.log_every = 10**9
   return config
 
@@ -65,8 +69,9 @@ def scenes(n: int, image_size: int, seed: int):
   return scenes
 
 
-def setup_step(name: str, num_batches: int, train_scenes=None):
-  """Everything `slotlifter_jax.train` builds for a step, for configuration `name`.
+def setup_step(name: str, num_batches: int, train_scenes=None, dtype: str | None = None):
+  """Everything `slotlifter_jax.train` builds for a step, for configuration `name` (with
+  `model.dtype = dtype` unless None).
 
   Returns (config, model, state, batches, train_step): `num_batches` batches already on the mesh
   (rays of `train_scenes`, default freshly generated ones), the replicated initial state and the
@@ -79,7 +84,7 @@ def setup_step(name: str, num_batches: int, train_scenes=None):
   from slotlifter_jax import train_step as step_lib
   from slotlifter_jax.data import device_sampler
   from slotlifter_jax.data import pipeline
-  cfg = config(name)
+  cfg = config(name, dtype)
   c = cfg.train
   if train_scenes is None:
     train_scenes = scenes(c.batch_scenes, cfg.data.image_size, seed=0)

@@ -29,11 +29,16 @@ body (docs/performance.md §4: the only layout in which rematerialisation lowers
 XLA:CPU). Dropout is written by hand with a traced rate so the per-block rates can be scanned, and
 the dropout keys are split once at the top so both layouts compute the same function with the same
 randomness.
+
+`dtype` (the model's `model.dtype`, model.py) is the computation dtype of every Linear and of the
+attention and mapping products; the softmaxes (attention, W), the LayerNorm statistics, the
+residual stream h and what leaves for volume rendering (W, A, σ, colour) are float32.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import flax.linen as nn
 import flax.struct
@@ -96,11 +101,13 @@ def dot_product_attention(*, q: jax.Array, k: jax.Array, v: jax.Array) -> jax.Ar
   """Multi-head scaled dot-product attention.
 
   q [..., T, H, dq], k [..., L, H, dq], v [..., L, H, dv] with equal leading dims →
-  [..., T, H, dv]; softmax over the L keys, scale dq^-½.
+  [..., T, H, dv]; softmax over the L keys, scale dq^-½. Both products run in the inputs' dtype,
+  the scaling and softmax in float32.
   """
-  logits = jnp.einsum("...thd,...lhd->...htl", q, k) / math.sqrt(q.shape[-1])  # [..., H, T, L]
+  logits = jnp.einsum("...thd,...lhd->...htl", q, k).astype(jnp.float32) / math.sqrt(
+      q.shape[-1])  # [..., H, T, L]
   attn = jax.nn.softmax(logits, axis=-1)
-  return jnp.einsum("...htl,...lhd->...thd", attn, v)  # [..., T, H, dv]
+  return jnp.einsum("...htl,...lhd->...thd", attn.astype(v.dtype), v)  # [..., T, H, dv]
 
 
 def locality_mask(*, logits: jax.Array, points: jax.Array, box: float, enabled) -> jax.Array:
@@ -185,18 +192,21 @@ class MultiHeadAttention(nn.Module):
   out_dim: int
   num_heads: int
   out_gain: float = 1.0
+  dtype: Any = jnp.float32  # computation dtype of the projections and products
 
   @nn.compact
   def __call__(self, queries: jax.Array, keys_values: jax.Array) -> jax.Array:
     """queries [..., T, Cq], keys_values [..., L, Ckv] (same leading dims) → [..., T, out_dim]."""
     h, dh = self.num_heads, self.proj_dim // self.num_heads
-    dense = lambda name: nn.Dense(self.proj_dim, kernel_init=_xavier(), name=name)
+    dense = lambda name: nn.Dense(self.proj_dim, kernel_init=_xavier(), dtype=self.dtype,
+                                  name=name)
     q = dense("query")(queries).reshape(queries.shape[:-1] + (h, dh))  # [..., T, H, dh]
     k = dense("key")(keys_values).reshape(keys_values.shape[:-1] + (h, dh))  # [..., L, H, dh]
     v = dense("value")(keys_values).reshape(keys_values.shape[:-1] + (h, dh))
     out = dot_product_attention(q=q, k=k, v=v)  # [..., T, H, dh]
     out = out.reshape(out.shape[:-2] + (self.proj_dim,))
-    return nn.Dense(self.out_dim, kernel_init=_xavier(self.out_gain), name="out")(out)
+    return nn.Dense(self.out_dim, kernel_init=_xavier(self.out_gain), dtype=self.dtype,
+                    name="out")(out)
 
 
 class AllocationBlock(nn.Module):
@@ -212,35 +222,38 @@ class AllocationBlock(nn.Module):
   ffn_dim: int = 256
   out_gain: float = 1.0
   train: bool = False
+  dtype: Any = jnp.float32  # computation dtype; h stays float32 (see the module docstring)
 
   @nn.compact
   def __call__(self, h: jax.Array, rate_and_key, slots: jax.Array):
     rate, key = rate_and_key
     b, r, s, c = h.shape
-    ln = lambda name: nn.LayerNorm(epsilon=LAYER_NORM_EPS, name=name)
+    # Statistics in float32 (flax's force_float32_reductions); the output feeds a Linear.
+    ln = lambda name: nn.LayerNorm(epsilon=LAYER_NORM_EPS, dtype=self.dtype, name=name)
+    attention = lambda proj_dim, name: MultiHeadAttention(
+        proj_dim, self.width, self.num_heads, self.out_gain, dtype=self.dtype, name=name)
 
     # Cross-attention from every point to S' (keys/values shared by all points of a scene).
     x = ln("cross_norm")(h).reshape(b, r * s, c)  # [B, R·S, C]
-    x = MultiHeadAttention(self.width, self.width, self.num_heads, self.out_gain,
-                           name="cross_attn")(x, slots)
+    x = attention(self.width, "cross_attn")(x, slots)
     x = x.reshape(b, r, s, c)  # [B, R, S, C]
     # Conv1d(k=3, 'same') along the ray, written as one Dense over shifted copies.
     fan_in = 3 * c
     x = nn.relu(nn.Dense(c, kernel_init=torch_default_kernel_init(),
-                         bias_init=torch_default_bias_init(fan_in), name="conv")(conv1d_taps(x)))
+                         bias_init=torch_default_bias_init(fan_in), dtype=self.dtype,
+                         name="conv")(conv1d_taps(x)))
     # The FFN takes the branch x, not h (official code).
     y = ln("ffn_norm")(x)
     y = nn.relu(nn.Dense(self.ffn_dim, kernel_init=nn.initializers.he_uniform(),
-                         name="ffn_in")(y))
-    y = nn.Dense(c, kernel_init=_xavier(self.out_gain), name="ffn_out")(y)
+                         dtype=self.dtype, name="ffn_in")(y))
+    y = nn.Dense(c, kernel_init=_xavier(self.out_gain), dtype=self.dtype, name="ffn_out")(y)
     # A block whose rate is statically 0 (the first, unscanned) draws no random bits at all.
     if self.train and not (isinstance(rate, float) and rate == 0.0):
       x, y = paired_dropout(x, y, rate=rate, key=key)
-    h = h + x + y
+    h = h + x + y  # a float32 h stays float32 (jnp promotion)
     # Self-attention among the S samples of each ray.
     z = ln("self_norm")(h)
-    h = h + MultiHeadAttention(self.self_attn_dim, self.width, self.num_heads, self.out_gain,
-                               name="self_attn")(z, z)
+    h = h + attention(self.self_attn_dim, "self_attn")(z, z)
     return h, None
 
 
@@ -253,6 +266,7 @@ class AllocationTransformer(nn.Module):
   ffn_dim: int = 256
   max_dropout: float = 0.2
   remat_scan: bool = False
+  dtype: Any = jnp.float32  # computation dtype; the output, a LayerNorm's, is in it
 
   @nn.compact
   def __call__(self, h: jax.Array, slots: jax.Array, *, train: bool) -> jax.Array:
@@ -262,7 +276,7 @@ class AllocationTransformer(nn.Module):
     keys = jax.random.split(self.make_rng("dropout"), n) if train else None
     block_kwargs = dict(width=self.width, num_heads=self.num_heads,
                         self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim,
-                        out_gain=(3.0 * n) ** -0.5, train=train)
+                        out_gain=(3.0 * n) ** -0.5, train=train, dtype=self.dtype)
     if self.remat_scan:
       blocks = nn.scan(
           nn.remat(AllocationBlock, prevent_cse=False),
@@ -273,12 +287,12 @@ class AllocationTransformer(nn.Module):
       for i in range(n):
         key = None if keys is None else keys[i]
         h, _ = AllocationBlock(**block_kwargs, name=f"block_{i}")(h, (float(rates[i]), key), slots)
-    return nn.LayerNorm(epsilon=LAYER_NORM_EPS, name="final_norm")(h)
+    return nn.LayerNorm(epsilon=LAYER_NORM_EPS, dtype=self.dtype, name="final_norm")(h)
 
 
 @flax.struct.dataclass
 class Allocation:
-  features: jax.Array  # [B, R, S, C] F_s = Linear(W·S')
+  features: jax.Array  # [B, R, S, C] F_s = Linear(W·S'), in the computation dtype
   weights: jax.Array  # [B, R, S, K+1] point-slot weights W (index 0 = empty slot)
   logits: jax.Array  # [B, R, S, K+1] mapping logits A after the locality mask
   density: jax.Array  # [B, R, S] density σ ≥ 0 (slot-based, or the MLP head's)
@@ -313,6 +327,7 @@ class SlotDecoder(nn.Module):
   locality_box: float = 0.64
   density_log_init: float = 0.0  # initial s_σ (official: 0)
   density_mode: str = "slot"  # "slot" | "mlp" (see the class docstring)
+  dtype: Any = jnp.float32  # computation dtype (see the module docstring)
 
   @nn.compact
   def __call__(self, point_features: jax.Array, slots: jax.Array, points: jax.Array, *,
@@ -320,27 +335,33 @@ class SlotDecoder(nn.Module):
     """point_features F_p [B, R, S, C], slots [B, K, Ds], points [B, R, S, 3]; `locality` a
     (traced) bool scalar switching the locality constraint."""
     b, _, ds = slots.shape
+    dense = lambda width, name: nn.Dense(width, kernel_init=_xavier(), dtype=self.dtype,
+                                         name=name)
     empty = self.param("empty_slot", _empty_slot_init, (ds,))
     slots_all = jnp.concatenate(
         [jnp.broadcast_to(empty, (b, 1, ds)), slots], axis=1)  # [B, K+1, Ds]: S', no LayerNorm
     h = AllocationTransformer(
         width=self.width, num_blocks=self.num_blocks, num_heads=self.num_heads,
         self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim, max_dropout=self.max_dropout,
-        remat_scan=self.remat_scan, name="transformer")(point_features, slots_all, train=train)
+        remat_scan=self.remat_scan, dtype=self.dtype,
+        name="transformer")(point_features, slots_all, train=train)
 
-    q = nn.Dense(self.width, kernel_init=_xavier(), name="map_query")(h)  # [B, R, S, C]
-    k = nn.Dense(self.width, kernel_init=_xavier(), name="map_key")(slots_all)  # [B, K+1, C]
-    logits = jnp.einsum("brsc,bkc->brsk", q, k) / math.sqrt(self.width)  # [B, R, S, K+1]
+    q = dense(self.width, "map_query")(h)  # [B, R, S, C]
+    k = dense(self.width, "map_key")(slots_all)  # [B, K+1, C]
+    # A (the logits) feeds the softmax W and the density's ReLU(A_k): float32 after the product.
+    logits = jnp.einsum("brsc,bkc->brsk", q, k).astype(jnp.float32) / math.sqrt(
+        self.width)  # [B, R, S, K+1]
     logits = locality_mask(logits=logits, points=points, box=self.locality_box, enabled=locality)
     weights = point_slot_weights(logits)
-    mixed = jnp.einsum("brsk,bkd->brsd", weights, slots_all)  # [B, R, S, Ds]: W·S'
-    features = nn.Dense(self.width, kernel_init=_xavier(), name="map_out")(mixed)
+    mixed = jnp.einsum("brsk,bkd->brsd", weights.astype(self.dtype),
+                       slots_all.astype(self.dtype))  # [B, R, S, Ds]: W·S'
+    features = dense(self.width, "map_out")(mixed)
     log_scale = self.param("log_density_scale", nn.initializers.constant(self.density_log_init), ())
     if self.density_mode == "slot":
       density = slot_density(logits=logits, weights=weights, log_scale=log_scale)
     elif self.density_mode == "mlp":
-      hidden = nn.relu(nn.Dense(self.width, kernel_init=_xavier(), name="density_hidden")(h))
-      raw = nn.Dense(1, kernel_init=_xavier(), name="density_out")(hidden)  # [B, R, S, 1]
+      hidden = nn.relu(dense(self.width, "density_hidden")(h))
+      raw = dense(1, "density_out")(hidden).astype(jnp.float32)  # [B, R, S, 1]
       density = mlp_density(raw=raw, log_scale=log_scale)
     else:
       raise ValueError(f"density_mode must be one of {DENSITY_MODES}, got {self.density_mode!r}")
@@ -355,11 +376,14 @@ class ColourMLP(nn.Module):
   hidden: int = 64
   num_layers: int = 4
   colour_range: str = "unit"
+  dtype: Any = jnp.float32  # computation dtype of the Linear layers; the colour is float32
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:  # [..., C] → [..., 3]
     for i in range(self.num_layers):
-      x = nn.Dense(self.hidden, kernel_init=nn.initializers.he_uniform(), name=f"hidden_{i}")(x)
+      x = nn.Dense(self.hidden, kernel_init=nn.initializers.he_uniform(), dtype=self.dtype,
+                   name=f"hidden_{i}")(x)
       x = nn.leaky_relu(x, negative_slope=LEAKY_SLOPE)
-    raw = nn.Dense(3, kernel_init=_xavier(), name="out")(x)
-    return colour_activation(raw, mode=self.colour_range)
+    raw = nn.Dense(3, kernel_init=_xavier(), dtype=self.dtype, name="out")(x)
+    # tanh in float32: near 1 a bfloat16 colour would be rounded to steps of 2^-8.
+    return colour_activation(raw.astype(jnp.float32), mode=self.colour_range)

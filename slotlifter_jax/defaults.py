@@ -42,6 +42,12 @@ def base_config() -> ml_collections.ConfigDict:
   m.density_log_init = 0.0  # initial value of the learned log density scale s_σ (official: 0)
   m.locality_box = 0.64  # |coordinate| beyond which only slots 0 and 1 may take a point
   m.remat_scan = False  # nn.scan + nn.remat over the decoder blocks: less memory, more time
+  # Computation dtype: "float32", or "bfloat16" for bf16 matmuls and convolutions with float32
+  # parameters, softmaxes, norm statistics, volume rendering and loss (model.py, "Numerics";
+  # tolerances in tests/test_bf16.py). float32 stays the default: on this CPU (AVX-512 BF16, no
+  # AMX) a prototype ran bf16 slower (docs/performance.md §2); `experiments/bench.py --dtypes`
+  # measures both.
+  m.dtype = "float32"
   # Ablations of docs/method.md §5 (experiments/ablations.py); the defaults are the paper's method.
   # "Without random masking" needs no switch: train.mask_max = 0 keeps every ray's features.
   m.feature_lifting = True  # False: point feature F_p = E_p only (no lifted features)

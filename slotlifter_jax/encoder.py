@@ -24,12 +24,15 @@ grid spans the image exactly as the lifting step (docs/method.md §1.3) assumes.
 
 Weights use PyTorch's default convolution init (uniform ±1/√fan_in for kernel and bias), since the
 official model does not override it.
+
+`dtype` is the computation dtype of every convolution and of the InstanceNorm outputs (the model's
+`model.dtype`, see model.py); parameters and the InstanceNorm statistics stay float32.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from typing import Any, Sequence
 
 import flax.linen as nn
 import jax
@@ -89,6 +92,7 @@ class ReflectConv(nn.Module):
   kernel_size: int
   stride: int = 1
   use_bias: bool = True
+  dtype: Any = jnp.float32  # computation dtype; the kernel and bias stay float32
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:  # [N, H, W, C]
@@ -99,30 +103,38 @@ class ReflectConv(nn.Module):
     return nn.Conv(
         self.features, (self.kernel_size, self.kernel_size), strides=self.stride,
         padding="VALID", use_bias=self.use_bias, kernel_init=torch_default_kernel_init(),
-        bias_init=torch_default_bias_init(fan_in), name="conv")(x)
+        bias_init=torch_default_bias_init(fan_in), dtype=self.dtype, name="conv")(x)
 
 
-def instance_norm(name: str) -> nn.Module:
-  """InstanceNorm with affine parameters: statistics over H×W per image and channel."""
+def instance_norm(name: str, dtype: Any = jnp.float32) -> nn.Module:
+  """InstanceNorm with affine parameters: statistics over H×W per image and channel.
+
+  flax computes the statistics and the normalisation in float32 whatever the input dtype
+  (`force_float32_reductions`, its default) and returns them in `dtype`, which feeds the next
+  convolution.
+  """
   return nn.GroupNorm(num_groups=None, group_size=1, epsilon=INSTANCE_NORM_EPS,
-                      use_fast_variance=False, name=name)
+                      use_fast_variance=False, dtype=dtype, name=name)
 
 
 class BasicBlock(nn.Module):
   """ResNet BasicBlock: conv3×3/s → IN → ReLU → conv3×3 → IN, + (1×1/s conv → IN)(x), ReLU."""
   features: int
   stride: int = 1
+  dtype: Any = jnp.float32
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    y = ReflectConv(self.features, 3, self.stride, use_bias=False, name="conv1")(x)
-    y = nn.relu(instance_norm("norm1")(y))
-    y = ReflectConv(self.features, 3, use_bias=False, name="conv2")(y)
-    y = instance_norm("norm2")(y)
+    conv = lambda k, stride, name: ReflectConv(self.features, k, stride, use_bias=False,
+                                               dtype=self.dtype, name=name)
+    y = conv(3, self.stride, "conv1")(x)
+    y = nn.relu(instance_norm("norm1", self.dtype)(y))
+    y = conv(3, 1, "conv2")(y)
+    y = instance_norm("norm2", self.dtype)(y)
     identity = x
     if self.stride != 1 or x.shape[-1] != self.features:
-      identity = ReflectConv(self.features, 1, self.stride, use_bias=False, name="down_conv")(x)
-      identity = instance_norm("down_norm")(identity)
+      identity = conv(1, self.stride, "down_conv")(x)
+      identity = instance_norm("down_norm", self.dtype)(identity)
     return nn.relu(y + identity)
 
 
@@ -130,11 +142,12 @@ class ConvNormElu(nn.Module):
   """The decoder's conv → IN → ELU unit (IBRNet `conv`), with bias."""
   features: int
   kernel_size: int = 3
+  dtype: Any = jnp.float32
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
-    x = ReflectConv(self.features, self.kernel_size, name="conv")(x)
-    return nn.elu(instance_norm("norm")(x))
+    x = ReflectConv(self.features, self.kernel_size, dtype=self.dtype, name="conv")(x)
+    return nn.elu(instance_norm("norm", self.dtype)(x))
 
 
 class ResUNet(nn.Module):
@@ -143,27 +156,31 @@ class ResUNet(nn.Module):
   stem_width: int = 64
   widths: Sequence[int] = (64, 128, 256)
   blocks: Sequence[int] = (3, 4, 6)
+  dtype: Any = jnp.float32  # computation dtype (see the module docstring); the output is in it
 
   @nn.compact
   def __call__(self, x: jax.Array) -> jax.Array:
     if len(self.widths) != 3 or len(self.blocks) != 3:
       raise ValueError(f"ResUNet needs three layers, got widths={self.widths} "
                        f"blocks={self.blocks}")
-    x = ReflectConv(self.stem_width, 7, 2, use_bias=False, name="stem_conv")(x)
-    x = nn.relu(instance_norm("stem_norm")(x))  # [N, H/2, W/2, stem]
+    x = ReflectConv(self.stem_width, 7, 2, use_bias=False, dtype=self.dtype,
+                    name="stem_conv")(x)
+    x = nn.relu(instance_norm("stem_norm", self.dtype)(x))  # [N, H/2, W/2, stem]
 
     skips = []
     for layer, (width, count) in enumerate(zip(self.widths, self.blocks)):
       for i in range(count):
-        x = BasicBlock(width, stride=2 if i == 0 else 1, name=f"layer{layer + 1}_{i}")(x)
+        x = BasicBlock(width, stride=2 if i == 0 else 1, dtype=self.dtype,
+                       name=f"layer{layer + 1}_{i}")(x)
       skips.append(x)
     x1, x2, x3 = skips  # [N, H/4, W/4, w0], [N, H/8, W/8, w1], [N, H/16, W/16, w2]
 
     def up(y, skip):
       return resize_bilinear_align_corners(y, height=skip.shape[-3], width=skip.shape[-2])
 
-    x = ConvNormElu(self.widths[1], name="upconv3")(up(x3, x2))
-    x = ConvNormElu(self.widths[1], name="iconv3")(jnp.concatenate([x, x2], axis=-1))
-    x = ConvNormElu(self.widths[0], name="upconv2")(up(x, x1))
-    x = ConvNormElu(self.out_dim, name="iconv2")(jnp.concatenate([x, x1], axis=-1))
-    return ReflectConv(self.out_dim, 1, name="out_conv")(x)  # [N, h, w, D]
+    unit = lambda width, name: ConvNormElu(width, dtype=self.dtype, name=name)
+    x = unit(self.widths[1], "upconv3")(up(x3, x2))
+    x = unit(self.widths[1], "iconv3")(jnp.concatenate([x, x2], axis=-1))
+    x = unit(self.widths[0], "upconv2")(up(x, x1))
+    x = unit(self.out_dim, "iconv2")(jnp.concatenate([x, x1], axis=-1))
+    return ReflectConv(self.out_dim, 1, dtype=self.dtype, name="out_conv")(x)  # [N, h, w, D]

@@ -31,11 +31,37 @@ Choices where the method (docs/method.md) leaves room or the official code diffe
   `train.mask_max = 0` (keep ratio 1).
 - Stratified samples use `geometry.stratified_depths`' default bins (all samples inside
   [near, far]); `volume_render` puts the transparent remainder at `far`.
+
+Numerics (`model.dtype`, the `dtype` field): "float32" (the default) computes everything in
+float32. "bfloat16" is mixed precision with float32 parameters: every Linear and convolution, and
+the attention and point-slot products, multiply bfloat16 copies of their inputs and weights (half
+the bytes, and twice the multiply rate on hardware with bf16 units), while what is sensitive to
+rounding stays float32:
+- the softmaxes (slot attention over slots, the decoder's attentions, W): the logits are cast to
+  float32 after their product, so the exp, the sums over slots or keys and the division run in
+  float32 (a bf16 sum of many terms drops the small ones); a weight enters its next product as a
+  bf16 copy like any product input, while σ, the segmentation and slot attention's normalisation
+  over all V·h·w inputs use the float32 weights;
+- LayerNorm and InstanceNorm statistics and normalisation (flax computes them in float32 and
+  returns the compute dtype for the next Linear);
+- the positional encoding sin/cos(2^f·x) up to 2^9·x: in bf16 the argument 2^9·x of a point at
+  |x| ≈ 2 would be a multiple of 8, more than the period 2π (only its Linear runs in bf16);
+- the residual streams: the slots (the GRU state, which starts from the float32 μ) and the
+  decoder's h, so rounding errors do not accumulate over blocks and iterations;
+- the encoder's output features, the mapping logits A, W, σ and the colour (tanh of a float32
+  cast), and with them all of volume rendering (transmittance, weights, composites), the
+  geometry (rays, projection, sample points) and the loss (train_step.py).
+Parameters, their gradients and the optimiser state are float32 in both modes (same shapes and
+dtypes); the check of a run's saved config (checkpoints.check_compatible) still counts model.dtype
+as part of the model. tests/test_bf16.py states the tolerances against the float32 model. On a
+CPU without AMX, such as the 2-core development machine (AVX-512 BF16 only), the pre-project
+prototype measured bf16 slower than float32 (docs/performance.md §2), so float32 stays the
+default; `experiments/bench.py --dtypes=float32,bfloat16` measures both.
 """
 
 from __future__ import annotations
 
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import flax.linen as nn
 import flax.struct
@@ -54,6 +80,16 @@ from slotlifter_jax.slot_attention import SlotAttention, position_grid
 # colour MLP, lifting Linear, positional Linear); everything else is "backbone". Prefixes, so the
 # fine pass's `colour_mlp_fine` and `lift_proj_fine` are included.
 HEAD_MODULE_PREFIXES = ("colour_mlp", "lift_proj", "pos_proj")
+
+# `model.dtype` values → the computation dtype (module docstring, "Numerics").
+COMPUTE_DTYPES = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}
+
+
+def compute_dtype(name: str):
+  """The jnp dtype of a `model.dtype` name; ValueError for anything else."""
+  if name not in COMPUTE_DTYPES:
+    raise ValueError(f"model.dtype must be one of {sorted(COMPUTE_DTYPES)}, got {name!r}")
+  return COMPUTE_DTYPES[name]
 
 
 @flax.struct.dataclass
@@ -152,18 +188,23 @@ class SlotLifter(nn.Module):
   # normalised scene frame (`geometry.slab_interval`), e.g. from just below the floor to above the
   # tallest object; () samples all of [near, far] (the paper's).
   z_bounds: tuple = ()
+  # Computation dtype of the Linear layers and convolutions (`compute_dtype`, module docstring
+  # "Numerics"); parameters are float32 whatever it is.
+  dtype: Any = jnp.float32
 
   def setup(self):
     self.encoder = ResUNet(out_dim=self.feature_dim, stem_width=self.encoder_stem_width,
-                           widths=tuple(self.encoder_widths), blocks=tuple(self.encoder_blocks))
+                           widths=tuple(self.encoder_widths), blocks=tuple(self.encoder_blocks),
+                           dtype=self.dtype)
     self.slot_attention = SlotAttention(
         num_slots=self.num_slots, slot_dim=self.slot_dim, num_iters=self.slot_iters,
-        mlp_dim=self.slot_mlp_dim, eps=self.slot_eps, drop_path_rate=self.slot_drop_path)
+        mlp_dim=self.slot_mlp_dim, eps=self.slot_eps, drop_path_rate=self.slot_drop_path,
+        dtype=self.dtype)
     if self.slot_position_embedding:
-      self.slot_pos_proj = nn.Dense(self.feature_dim, name="slot_pos_proj")
+      self.slot_pos_proj = nn.Dense(self.feature_dim, dtype=self.dtype, name="slot_pos_proj")
     # xavier-uniform kernels, zero biases: the official `linear` helper.
     dense = lambda name: nn.Dense(self.point_dim, kernel_init=nn.initializers.xavier_uniform(),
-                                  name=name)
+                                  dtype=self.dtype, name=name)
     self.pos_proj = dense("pos_proj")  # E_p, shared by both passes
     passes = ["", "_fine"] if self.num_fine_samples > 0 else [""]
     # One (lifting Linear, slot decoder, colour MLP) triple per pass; the input width of the lifting
@@ -175,11 +216,12 @@ class SlotLifter(nn.Module):
             self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim, max_dropout=self.max_dropout,
             remat_scan=self.remat_scan, locality_box=self.locality_box,
             density_log_init=self.density_log_init, density_mode=self.density_mode,
-            name=f"allocation{p}")
+            dtype=self.dtype, name=f"allocation{p}")
         for p in passes]
     self.colour_mlps = [
         decoder_lib.ColourMLP(hidden=self.colour_hidden, num_layers=self.colour_layers,
-                              colour_range=self.colour_range, name=f"colour_mlp{p}")
+                              colour_range=self.colour_range, dtype=self.dtype,
+                              name=f"colour_mlp{p}")
         for p in passes]
 
   def encode(self, *, source_images: jax.Array, source_cam_to_world: jax.Array,
@@ -191,7 +233,9 @@ class SlotLifter(nn.Module):
     b, v, height, width, _ = source_images.shape
     x = encoder_input(images=source_images, cam_to_world=source_cam_to_world,
                       intrinsics=source_intrinsics)  # [B, V, H, W, 9]
-    feats = self.encoder(x.reshape((b * v, height, width, x.shape[-1])))  # [B·V, h, w, D]
+    # float32 out of the encoder: lifting samples these maps bilinearly, slot attention normalises.
+    feats = self.encoder(x.reshape((b * v, height, width, x.shape[-1]))).astype(
+        jnp.float32)  # [B·V, h, w, D]
     feats = feats.reshape((b, v) + feats.shape[1:])  # [B, V, h, w, D]
     slot_inputs = feats
     if self.slot_position_embedding:
@@ -217,15 +261,19 @@ class SlotLifter(nn.Module):
           points=points, cam_to_world=source_cam_to_world, intrinsics=source_intrinsics,
           images=source_images, features=encoded.features)  # values [B, R, S, V, D+3]
       fused = lifting.fuse_views(values=lifted.values, valid=lifted.valid)  # [B, R, S, (2)(D+3)]
-      f_lift = self.lift_projs[index](fused)  # [B, R, S, C]
+      # float32: F_p starts the decoder's float32 residual stream.
+      f_lift = self.lift_projs[index](fused).astype(jnp.float32)  # [B, R, S, C]
       if lifted.valid.shape[-1] == 1:
         # V = 1: valid·Linear(x), so an invalid point gets no bias either (official); the view
         # axis of valid [B, R, S, 1] broadcasts over C.
         f_lift = f_lift * lifted.valid
       if keep is not None:
         f_lift = lifting.apply_ray_mask(lifted=f_lift, keep=keep)
+    # The encoding is float32 (geometry.positional_encoding of float32 points); only the Linear
+    # runs in the computation dtype.
     e_p = self.pos_proj(point_embedding_input(points=points, directions=ray_directions,
-                                              num_freqs=self.num_freqs))  # [B, R, S, C]
+                                              num_freqs=self.num_freqs)).astype(
+                                                  jnp.float32)  # [B, R, S, C]
     point_features = e_p if f_lift is None else f_lift + e_p  # F_p [B, R, S, C]
     alloc = self.allocations[index](point_features, encoded.slots, points, locality=locality,
                                     train=train)
@@ -353,4 +401,5 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       z_bounds=tuple(float(x) for x in r.get("z_bounds", ())),
       feature_lifting=bool(m.feature_lifting),
       density_mode=str(m.density_mode),
+      dtype=compute_dtype(str(m.get("dtype", "float32"))),
   )

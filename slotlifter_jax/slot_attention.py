@@ -19,6 +19,11 @@ recurrent kernels are likewise cut from ONE orthogonal matrix over all three gat
 torch.nn.init.orthogonal_ on the official stacked weight_hh [3·Ds, Ds] (entry std √(1/(3·Ds))),
 not one orthogonal matrix per gate as flax's GRUCell draws them (std 1/√Ds, √3 wider); see
 `SlotGRU`.
+
+`dtype` (the model's `model.dtype`, model.py) is the computation dtype of the projections, the
+GRU's and MLP's Linear layers, the q·k logits and the weighted mean; the softmax over slots, the
+LayerNorm statistics and the slots themselves (the GRU state, which starts from the float32 μ)
+stay float32.
 """
 
 from __future__ import annotations
@@ -59,13 +64,14 @@ def slot_competition(*, logits: jax.Array, values: jax.Array, eps: float) -> Com
 
   Args:
     logits: [B, K, N] scaled query·key products.
-    values: [B, N, Ds].
+    values: [B, N, Ds]; the weighted mean runs in their dtype (the model's computation dtype).
     eps: added to each slot's total attention before dividing; the official ε = 1 damps slots
       that win almost no inputs (their update shrinks towards 0 instead of amplifying noise).
   """
-  attn = jax.nn.softmax(logits, axis=-2)  # [B, K, N]: over slots
+  # The softmax and the normalisation over N are reductions: float32 whatever the logits' dtype.
+  attn = jax.nn.softmax(logits.astype(jnp.float32), axis=-2)  # [B, K, N]: over slots
   weights = attn / (jnp.sum(attn, axis=-1, keepdims=True) + eps)  # [B, K, N]
-  updates = jnp.einsum("bkn,bnd->bkd", weights, values)  # [B, K, Ds]
+  updates = jnp.einsum("bkn,bnd->bkd", weights.astype(values.dtype), values)  # [B, K, Ds]
   return Competition(attn=attn, updates=updates)
 
 
@@ -128,6 +134,7 @@ class SlotGRU(nn.Module):
   """
   features: int
   kernel_init: Any = nn.initializers.lecun_normal()  # input kernels, one per gate
+  dtype: Any = jnp.float32  # computation dtype of the six Linear maps
 
   @nn.compact
   def __call__(self, carry: jax.Array, inputs: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -135,14 +142,15 @@ class SlotGRU(nn.Module):
     h = carry
     # Draws a key only while the parameters are being created; `apply` needs no 'params' rng.
     stacked_key = self.make_rng("params") if self.is_initializing() else None
-    dense_i = lambda name: nn.Dense(self.features, kernel_init=self.kernel_init, name=name)
+    dense_i = lambda name: nn.Dense(self.features, kernel_init=self.kernel_init,
+                                    dtype=self.dtype, name=name)
     dense_h = lambda name, gate, use_bias=False: nn.Dense(
         self.features, use_bias=use_bias, kernel_init=_gate_slice_init(stacked_key, gate),
-        name=name)
+        dtype=self.dtype, name=name)
     r = nn.sigmoid(dense_i("ir")(inputs) + dense_h("hr", 0)(h))
     z = nn.sigmoid(dense_i("iz")(inputs) + dense_h("hz", 1)(h))
     n = jnp.tanh(dense_i("in")(inputs) + r * dense_h("hn", 2, use_bias=True)(h))
-    new_h = (1.0 - z) * n + z * h
+    new_h = (1.0 - z) * n + z * h  # the dtype of h: float32 slots stay float32
     return new_h, new_h
 
 
@@ -154,25 +162,32 @@ class SlotAttention(nn.Module):
   mlp_dim: int = 1024
   eps: float = 1.0
   drop_path_rate: float = 0.2
+  dtype: Any = jnp.float32  # computation dtype (see the module docstring)
 
   def setup(self):
     d = self.slot_dim
     self.mu = self.param("mu", _mu_init, (self.num_slots, d))
-    self.norm_inputs = nn.LayerNorm(epsilon=LAYER_NORM_EPS)
-    self.norm_slots = nn.LayerNorm(epsilon=LAYER_NORM_EPS)
-    self.norm_mlp = nn.LayerNorm(epsilon=LAYER_NORM_EPS)
-    self.project_q = nn.Dense(d, use_bias=False, kernel_init=nn.initializers.xavier_uniform())
-    self.project_k = nn.Dense(d, use_bias=False, kernel_init=nn.initializers.xavier_uniform())
-    self.project_v = nn.Dense(d, use_bias=False, kernel_init=nn.initializers.xavier_uniform())
+    # Statistics in float32 (flax's force_float32_reductions); the output feeds a Linear.
+    norm = lambda: nn.LayerNorm(epsilon=LAYER_NORM_EPS, dtype=self.dtype)
+    self.norm_inputs = norm()
+    self.norm_slots = norm()
+    self.norm_mlp = norm()
+    project = lambda: nn.Dense(d, use_bias=False, kernel_init=nn.initializers.xavier_uniform(),
+                               dtype=self.dtype)
+    self.project_q = project()
+    self.project_k = project()
+    self.project_v = project()
     # PyTorch's xavier on the stacked [3·Ds, Ds] input kernel has variance 2/(Ds + 3·Ds); flax keeps
     # one [Ds, Ds] kernel per gate, so the same variance needs scale (Ds + Ds)/(Ds + 3·Ds) = 1/2.
     # The GRU has 512 fewer bias parameters than PyTorch's (it merges b_ir+b_hr, b_iz+b_hz). Its
     # recurrent kernels are slices of one orthogonal [Ds, 3·Ds] matrix, as torch's weight_hh.
     self.gru = SlotGRU(
-        features=d, kernel_init=nn.initializers.variance_scaling(0.5, "fan_avg", "uniform"))
+        features=d, kernel_init=nn.initializers.variance_scaling(0.5, "fan_avg", "uniform"),
+        dtype=self.dtype)
     # he_uniform = torch's kaiming_uniform_(nonlinearity='relu'), as the official first MLP layer.
-    self.mlp_in = nn.Dense(self.mlp_dim, kernel_init=nn.initializers.he_uniform())
-    self.mlp_out = nn.Dense(d, kernel_init=nn.initializers.xavier_uniform())
+    self.mlp_in = nn.Dense(self.mlp_dim, kernel_init=nn.initializers.he_uniform(),
+                           dtype=self.dtype)
+    self.mlp_out = nn.Dense(d, kernel_init=nn.initializers.xavier_uniform(), dtype=self.dtype)
 
   def initial_slots(self, batch: int, *, noise_sigma, train: bool) -> jax.Array:
     """μ + z·σ·stop_gradient(μ) with z from rng stream 'noise' in training; μ at evaluation."""
@@ -193,7 +208,9 @@ class SlotAttention(nn.Module):
              train: bool) -> Iteration:
     """One iteration of slot attention from slots [B, K, Ds] given keys and values [B, N, Ds]."""
     q = self.project_q(self.norm_slots(slots))  # [B, K, Ds]
-    logits = jnp.einsum("bkd,bnd->bkn", q, keys) / math.sqrt(self.slot_dim)  # [B, K, N]
+    # The product runs in the computation dtype; scaled and softmaxed in float32.
+    logits = jnp.einsum("bkd,bnd->bkn", q, keys).astype(jnp.float32) / math.sqrt(
+        self.slot_dim)  # [B, K, N]
     comp = slot_competition(logits=logits, values=values, eps=self.eps)
     new_slots, _ = self.gru(slots, comp.updates)  # carry = previous slots, input = updates
     residual = self.mlp_out(nn.relu(self.mlp_in(self.norm_mlp(new_slots))))
