@@ -25,6 +25,10 @@ from slotlifter_jax.data.types import Scene
 
 # Fields whose change makes a checkpoint unusable: the parameter shapes depend on them.
 ARCHITECTURE_FIELDS = ("model",)
+# ...except these: the computation precision leaves parameters, gradients and optimiser state float32
+# with the same shapes (model.py, "Numerics"), so a run trained in float32 can be evaluated, resumed
+# or rendered in bfloat16 and back.
+NOT_ARCHITECTURE = ("model.dtype",)
 
 
 class CheckpointMismatchError(ValueError):
@@ -185,6 +189,8 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
     for k, v in base.get(section, {}).items():
       a.setdefault(k, v)
     for k in sorted(set(a) | set(b)):
+      if f"{section}.{k}" in NOT_ARCHITECTURE:
+        continue
       if _normalise(a.get(k)) != _normalise(b.get(k)):
         diffs.append(f"{section}.{k}: saved {a.get(k)!r}, requested {b.get(k)!r}")
   if diffs:

@@ -404,6 +404,22 @@ def test_runs_saved_before_the_switches_still_load():
     ckpt_lib.check_compatible(ablated, saved, "old_run")
 
 
+def test_a_run_may_change_its_compute_dtype_but_not_its_shapes():
+  """model.dtype changes only the precision of the products (parameters stay float32 with the same
+  shapes), so a float32 run loads in bfloat16; a changed width still refuses, naming the field."""
+  from slotlifter_jax import checkpoints as ckpt_lib
+  import json
+  config = defaults.base_config()
+  saved = json.loads(config.to_json_best_effort())
+  bf16 = config.copy_and_resolve_references()
+  bf16.model.dtype = "bfloat16"
+  ckpt_lib.check_compatible(bf16, saved, "fp32_run")  # no error
+  bf16.model.slot_dim = 32
+  with pytest.raises(ckpt_lib.CheckpointMismatchError, match="model.slot_dim") as err:
+    ckpt_lib.check_compatible(bf16, saved, "fp32_run")
+  assert "model.dtype" not in str(err.value)
+
+
 def test_z_bounds_that_hold_every_ray_render_as_the_unbounded_grid():
   """A slab that contains all of [near, far] of every ray changes nothing; a tight slab puts every
   sample inside it."""
