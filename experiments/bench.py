@@ -8,7 +8,8 @@
 For each configuration, in a fresh process (so its peak memory is its own) that runs exactly what
 `python -m slotlifter_jax.main` runs (same allocator preload, XLA flags, mesh and jitted step):
   - train-step time: median (and spread) of --steps steps after two warm-up steps, rays per second;
-  - compile time of the step, XLA's temp buffer size, and the process's peak resident memory;
+  - compile time of the step, XLA's temp buffer size, and the process's peak resident memory (on a
+    GPU also the device's peak memory, `device_peak_gb`; the paper's batch is `paper_batch`);
   - matmul + convolution FLOPs of one step (forward and backward, counted on the jaxpr by
     slotlifter_jax.flops), the achieved GFLOP/s, this machine's fp32 matmul peak (a 2048² matmul in
     the same process) and their ratio, the model FLOP utilisation (MFU);
@@ -176,6 +177,7 @@ def measure(name: str, steps: int, render_repeats: int, dtype: str | None = None
       host.append(time.perf_counter() - t)
     host_batch_s = statistics.median(host)
   train_peak_rss = _peak_rss_bytes()
+  device_peak = bench_common.device_peak_bytes(jax.local_devices()[0])  # None on XLA:CPU
   del batches
 
   # One full view at 128×128 through the evaluation renderer (its own compile excluded).
@@ -208,6 +210,7 @@ def measure(name: str, steps: int, render_repeats: int, dtype: str | None = None
       step_gflop=step_flops / 1e9, achieved_gflops=achieved, matmul_peak_gflops=peak,
       mfu=achieved / peak, compile_s=compile_s, xla_temp_gb=None if temp_bytes is None else temp_bytes / 1e9,
       train_peak_rss_gb=train_peak_rss / 1e9, peak_rss_excludes_data_generation=peak_reset,
+      device_peak_gb=None if device_peak is None else device_peak / 1e9,
       rss_before_model_gb=rss_before / 1e9, rss_after_compile_gb=rss_after_compile / 1e9, render_view_s=statistics.median(render_times),
       render_first_call_s=render_first_s, render_size=RENDER_SIZE, render_chunk=config.render.chunk,
       final_loss=loss, finite=bool(np.isfinite(loss)),

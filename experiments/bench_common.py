@@ -108,3 +108,14 @@ def setup_step(name: str, num_batches: int, train_scenes=None, dtype: str | None
     batches = [step_lib.shard_batch(sampler.batch(i), mesh) for i in range(num_batches)]
     train_step = step_lib.make_train_step(model, cfg, key=jax.random.fold_in(key, 1), mesh=mesh)
   return cfg, model, state, batches, train_step
+
+
+def device_peak_bytes(device) -> int | None:
+  """The most bytes `device`'s allocator has held in this process (`peak_bytes_in_use` of
+  `Device.memory_stats()`, which GPU and TPU backends keep), or None where the backend keeps no
+  such count: XLA:CPU returns no statistics, and the CPU figure is the process's peak RSS."""
+  stats = device.memory_stats() if hasattr(device, "memory_stats") else None
+  if not stats or stats.get("peak_bytes_in_use") is None:
+    return None
+  return int(stats["peak_bytes_in_use"])
+
