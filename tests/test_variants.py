@@ -11,7 +11,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 METHOD_FIELDS = ("model.feature_lifting", "model.density_mode", "model.colour_range",
                  "train.mask_max", "train.optimizer", "data.num_source_views")
 # The cuts the fast variant's docstring lists, with their values.
-FAST_CUTS = {"model.slot_dim": 64, "model.slot_mlp_dim": 128, "model.point_dim": 32,
+FAST_CUTS = {"model.slot_dim": 32, "model.slot_mlp_dim": 64, "model.point_dim": 32,
              "model.num_blocks": 2, "model.ffn_dim": 64, "model.colour_hidden": 32,
              "render.num_samples": 16, "train.batch_scenes": 4, "train.rays_per_scene": 128}
 
@@ -46,8 +46,8 @@ def test_variants_compose_left_to_right():
   for path, value in FAST_CUTS.items():
     assert field(both, path) == value, path
   # smoke after fast overrides fast's sizes; fast after smoke overrides smoke's.
-  assert clevr("fast+smoke").model.slot_dim == clevr("smoke").model.slot_dim
-  assert clevr("smoke+fast").model.slot_dim == 64
+  assert clevr("fast+smoke").model.point_dim == clevr("smoke").model.point_dim == 16
+  assert clevr("smoke+fast").model.point_dim == 32
   assert clevr("easy").model.slot_dim == clevr("").model.slot_dim  # easy changes only the data
 
 
