@@ -53,10 +53,11 @@ rounding stays float32:
   geometry (rays, projection, sample points) and the loss (train_step.py).
 Parameters, their gradients and the optimiser state are float32 in both modes (same shapes and
 dtypes), so the check of a run's saved config (checkpoints.check_compatible) lets model.dtype
-differ: a float32 run can be evaluated or resumed in bfloat16. tests/test_bf16.py states the tolerances against the float32 model. On a
-CPU without AMX, such as the 2-core development machine (AVX-512 BF16 only), the pre-project
-prototype measured bf16 slower than float32 (docs/performance.md §2), so float32 stays the
-default; `experiments/bench.py --dtypes=float32,bfloat16` measures both.
+differ: a float32 run can be evaluated or resumed in bfloat16. tests/test_bf16.py states the
+tolerances against the float32 model. On a CPU without AMX, such as the 2-core development machine
+(AVX-512 BF16 only), bf16 is slower than float32 (×1.09 per step on bench config A, ×1.23 on B:
+`experiments/bench.py --configs=A,B --dtypes=float32,bfloat16`, docs/performance.md §2), so
+float32 stays the default.
 """
 
 from __future__ import annotations
