@@ -101,6 +101,12 @@ def base_config() -> ml_collections.ConfigDict:
   # just below the floor to above the tallest object), for sets that have one. Variants that
   # sample only inside the scene copy it to render.z_bounds.
   d.scene_z_range = ()
+  # "world": poses as stored (the paper's). "source_azimuth": each scene turned about the vertical
+  # axis so its source view sits at azimuth 0 (data/registry.py), for sets whose source cameras
+  # stand at random azimuths around a z-up scene centred at the origin (uORF sets, the embedded
+  # set). Without it a position in the frame says nothing about where it appears in the source
+  # view until the model has inferred the source camera's azimuth from the image.
+  d.frame = "world"
   # "host": NumPy batches on a thread (every format). "device": the training split kept on the
   # device and each batch drawn inside the jitted step (fixed-source sets, uniform rays; see
   # data/device_sampler.py), which also allows several steps per dispatch.

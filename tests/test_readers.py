@@ -408,3 +408,51 @@ def test_registry_reads_a_real_generator_folder(tmp_path):
     assert scene.masks.max() <= len(scene.objects)
     chex.assert_shape(scene.images, (3, 8, 8, 3))
   assert fx.folder_hash(tmp_path) == before
+
+
+def _project(pose, k, point):
+  """Pixel of a world point in a cam2world pose (a NumPy pinhole, independent of the readers)."""
+  cam = np.linalg.inv(pose) @ np.append(point, 1.0)
+  uvw = k @ cam[:3]
+  return uvw[:2] / uvw[2]
+
+
+def test_source_azimuth_frame_turns_scene_so_source_sits_at_azimuth_zero(tmp_path):
+  truth = fx.write_uorf_split(tmp_path / "clevr_567_train", num_scenes=3, views=4, size=(6, 6))
+  world = registry.load_split(data_config(root=str(tmp_path)), "train")
+  turned = registry.load_split(data_config(root=str(tmp_path), frame="source_azimuth"), "train")
+  assert len(world) == len(turned) == 2
+  for a, b in zip(world, turned):
+    stems = truth["stems"][a.name]
+    centre = truth["pose"][stems[0]][:3, 3] * SCALE
+    azimuth = np.arctan2(centre[1], centre[0])
+    # The source camera now stands at azimuth 0, at its own radius and height.
+    src = b.cam_to_world[0, :3, 3].astype(np.float64)
+    np.testing.assert_allclose(src, [np.hypot(centre[0], centre[1]), 0.0, centre[2]], atol=1e-5)
+    # Every view turned by the same rotation about z (scipy's, an independent reference) ...
+    turn = Rotation.from_euler("z", -azimuth).as_matrix()
+    for v, stem in enumerate(stems):
+      expected = expected_pose(truth["pose"][stem])
+      expected[:3, :] = turn @ expected[:3, :]
+      np.testing.assert_allclose(b.cam_to_world[v], expected, atol=1e-5)
+    # ... so a point turned with the scene lands on the same pixel of every view.
+    point = np.array([0.2, -0.1, 0.05])
+    for v in range(a.num_views):
+      np.testing.assert_allclose(
+          _project(b.cam_to_world[v].astype(np.float64), b.intrinsics[v], turn @ point),
+          _project(a.cam_to_world[v].astype(np.float64), a.intrinsics[v], point), atol=1e-4)
+    np.testing.assert_array_equal(a.images, b.images)
+
+
+def test_source_azimuth_frame_rejects_pooled_sources_and_unknown_frames(tmp_path):
+  for i, scan in enumerate(("scan1", "scan4", "scan9")):
+    fx.write_dtu_scan(tmp_path, scan, num_views=10, size=(6, 8), seed=i)
+  (tmp_path / "new_train.lst").write_text("scan1\nscan4\nscan9\n")
+  (tmp_path / "new_val.lst").write_text("scan9\n")
+  d = data_config(format="dtu", root=str(tmp_path), num_source_views=3, scene_scale=1.0,
+                  frame="source_azimuth")
+  with pytest.raises(registry.DataError, match=r"scan1: data.frame='source_azimuth' needs fixed"):
+    registry.load_split(d, "train")
+  d.frame = "camera"
+  with pytest.raises(ValueError, match=r"data.frame must be one of .*'camera'"):
+    registry.load_split(d, "train")

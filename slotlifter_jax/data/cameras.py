@@ -222,3 +222,29 @@ def nearest_sources(*, cam_to_world: np.ndarray, target_idx: int, pool: Sequence
   dist = view_distances(cam_to_world=cam_to_world, target_idx=target_idx)[candidates]
   order = np.argsort(dist, kind="stable")[:n]
   return tuple(int(i) for i in candidates[order])
+
+
+def azimuth_rotation(angle: float) -> np.ndarray:
+  """[4, 4] rotation by `angle` (radians, counter-clockwise seen from above) about the world z axis."""
+  c, s = np.cos(angle), np.sin(angle)
+  m = np.eye(4)
+  m[:2, :2] = [[c, -s], [s, c]]
+  return m
+
+
+def source_azimuth_frame(cam_to_world: np.ndarray, *, source_idx: int) -> np.ndarray:
+  """[N, 4, 4] poses of a scene turned about the world z axis so view `source_idx` sits at
+  azimuth 0 (its camera centre in the x–z half-plane with x > 0).
+
+  The scene itself is unchanged: every camera turns by the same angle about the vertical axis
+  through the scene's centre, so images, depths and masks stay valid and the floor stays at z = 0.
+  What changes is the frame in which the model sees 3D positions: a direction in it now means
+  the same thing relative to the source view in every scene (uORF's non-fixed locality, which
+  expresses coordinates in the input view's azimuth frame, for the same reason).
+  """
+  poses = np.asarray(cam_to_world, dtype=np.float64)
+  x, y = poses[source_idx, 0, 3], poses[source_idx, 1, 3]
+  if np.hypot(x, y) < 1e-9:
+    raise ValueError(f"view {source_idx}: the camera sits on the vertical axis, so it has no "
+                     f"azimuth to turn to 0")
+  return np.einsum("ij,njk->nik", azimuth_rotation(-np.arctan2(y, x)), poses)

@@ -16,11 +16,13 @@ Nothing is cached or written: not into the data folders, nor anywhere else.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from typing import Optional
 
 from absl import logging
 
+from slotlifter_jax.data import cameras
 from slotlifter_jax.data import dtu
 from slotlifter_jax.data import pipeline
 from slotlifter_jax.data import scannet
@@ -30,6 +32,9 @@ from slotlifter_jax.data.types import Scene
 
 SPLITS = ("train", "val", "test")
 FORMATS = ("uorf", "uocf", "dtu", "scannet")
+# `data.frame`: "world", the poses as stored (the paper's), or "source_azimuth", every scene turned
+# about the vertical axis so its (first) source view sits at azimuth 0 (`in_source_azimuth_frame`).
+FRAMES = ("world", "source_azimuth")
 
 
 def hold_out(names: list[str], *, split: str, num_val: int, where: str) -> list[str]:
@@ -110,6 +115,16 @@ def _load_scannet(d, split: str, max_scenes: Optional[int]) -> list[Scene]:
   return scenes if split == "train" else _expand(scenes, d)
 
 
+def in_source_azimuth_frame(scene: Scene) -> Scene:
+  """The scene with its poses in its first source view's azimuth frame
+  (`cameras.source_azimuth_frame`); `objects` metadata stays in the stored world frame."""
+  if scene.source_pool is not None or not scene.source_indices:
+    raise DataError(f"{scene.name}: data.frame='source_azimuth' needs fixed source views "
+                    f"(uORF-style sets); this scene draws its sources from a pool")
+  poses = cameras.source_azimuth_frame(scene.cam_to_world, source_idx=scene.source_indices[0])
+  return dataclasses.replace(scene, cam_to_world=poses.astype(scene.cam_to_world.dtype))
+
+
 def load_split(data_config, split: str, *, max_scenes: Optional[int] = None) -> list[Scene]:
   """The scenes of `split` ('train' | 'val' | 'test') of the data set `data_config` describes.
 
@@ -133,8 +148,13 @@ def load_split(data_config, split: str, *, max_scenes: Optional[int] = None) -> 
                     "generate the embedded set first")
   if not os.path.isdir(data_config.root):
     raise DataError(f"{data_config.root}: data.root does not exist (or is not a folder)")
+  frame = data_config.get("frame", "world")
+  if frame not in FRAMES:
+    raise ValueError(f"load_split: data.frame must be one of {FRAMES}, got {frame!r}")
   loader = {"uorf": _load_uorf, "uocf": _load_uorf, "dtu": _load_dtu,
             "scannet": _load_scannet}[fmt]
   scenes = loader(data_config, split, max_scenes)
+  if frame == "source_azimuth":
+    scenes = [in_source_azimuth_frame(scene) for scene in scenes]
   logging.info("%s %s: %d scenes from %s", fmt, split, len(scenes), data_config.root)
   return scenes
