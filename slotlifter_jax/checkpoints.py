@@ -29,6 +29,9 @@ ARCHITECTURE_FIELDS = ("model",)
 # with the same shapes (model.py, "Numerics"), so a run trained in float32 can be evaluated, resumed
 # or rendered in bfloat16 and back.
 NOT_ARCHITECTURE = ("model.dtype",)
+# ...and these fields of other sections, because the weights are tied to them: a model trained with
+# positions in the source view's azimuth frame renders another frame's positions wrongly.
+ALSO_ARCHITECTURE = ("data.frame",)
 
 
 class CheckpointMismatchError(ValueError):
@@ -193,6 +196,13 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
         continue
       if _normalise(a.get(k)) != _normalise(b.get(k)):
         diffs.append(f"{section}.{k}: saved {a.get(k)!r}, requested {b.get(k)!r}")
+  for field in ALSO_ARCHITECTURE:
+    section, k = field.split(".")
+    default = base.get(section, {}).get(k)
+    a = saved.get(section, {}).get(k, default)
+    b = current.get(section, {}).get(k, default)
+    if _normalise(a) != _normalise(b):
+      diffs.append(f"{field}: saved {a!r}, requested {b!r}")
   if diffs:
     raise CheckpointMismatchError(
         f"{where}: the run in this directory was made with another model config:\n  "

@@ -420,6 +420,27 @@ def test_a_run_may_change_its_compute_dtype_but_not_its_shapes():
   assert "model.dtype" not in str(err.value)
 
 
+def test_a_run_keeps_its_scene_frame():
+  """The weights are tied to the frame positions are given in (data.frame, docs/method.md §3.6):
+  another frame refuses, naming the field; a run saved before the field existed reads as "world"."""
+  from slotlifter_jax import checkpoints as ckpt_lib
+  import json
+  config = defaults.base_config()
+  saved = json.loads(config.to_json_best_effort())
+  turned = config.copy_and_resolve_references()
+  turned.data.frame = "source_azimuth"
+  with pytest.raises(ckpt_lib.CheckpointMismatchError,
+                     match=r"data.frame: saved 'world', requested 'source_azimuth'"):
+    ckpt_lib.check_compatible(turned, saved, "world_run")
+  del saved["data"]["frame"]
+  ckpt_lib.check_compatible(config, saved, "old_run")  # no error
+  with pytest.raises(ckpt_lib.CheckpointMismatchError, match="data.frame"):
+    ckpt_lib.check_compatible(turned, saved, "old_run")
+  resized = config.copy_and_resolve_references()
+  resized.data.image_size = 32  # other data fields are not tied to the weights
+  ckpt_lib.check_compatible(resized, json.loads(config.to_json_best_effort()), "world_run")
+
+
 def test_z_bounds_that_hold_every_ray_render_as_the_unbounded_grid():
   """A slab that contains all of [near, far] of every ray changes nothing; a tight slab puts every
   sample inside it."""
