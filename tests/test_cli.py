@@ -126,6 +126,8 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
      "/nonexistent: data.root does not exist"),
     (["--config=configs/clevr.py:smoke", "--workdir=a_file"], "a_file: exists and is not a directory"),
     (["--config=configs/clevr.py:smoke", "--num_processes=2"], "--process_id need --distributed"),
+    (["--config=configs/clevr.py:smoke", "--config.data.frame=camera"],
+     "data.frame must be one of ('world', 'source_azimuth'), got 'camera'"),
 ])
 def test_a_bad_command_line_gets_one_line_and_creates_nothing(tmp_path, args, message):
   shutil.copytree(os.path.join(REPO, "configs"), tmp_path / "configs")

@@ -27,6 +27,7 @@ from slotlifter_jax.data import dtu
 from slotlifter_jax.data import pipeline
 from slotlifter_jax.data import scannet
 from slotlifter_jax.data import uorf
+from slotlifter_jax.data.types import DataConfigError
 from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
 
@@ -121,7 +122,10 @@ def in_source_azimuth_frame(scene: Scene) -> Scene:
   if scene.source_pool is not None or not scene.source_indices:
     raise DataError(f"{scene.name}: data.frame='source_azimuth' needs fixed source views "
                     f"(uORF-style sets); this scene draws its sources from a pool")
-  poses = cameras.source_azimuth_frame(scene.cam_to_world, source_idx=scene.source_indices[0])
+  try:
+    poses = cameras.source_azimuth_frame(scene.cam_to_world, source_idx=scene.source_indices[0])
+  except ValueError as e:
+    raise DataError(f"{scene.name}: data.frame='source_azimuth': {e}") from e
   return dataclasses.replace(scene, cam_to_world=poses.astype(scene.cam_to_world.dtype))
 
 
@@ -136,13 +140,14 @@ def load_split(data_config, split: str, *, max_scenes: Optional[int] = None) -> 
     max_scenes: keep only the first scenes (quick looks and tests); None keeps all.
 
   Raises:
-    DataError naming the offending file when anything on disk is missing or malformed.
+    DataError naming the offending file when anything on disk is missing or malformed, and its
+    DataConfigError naming the field when data.format or data.frame has no reader.
   """
   if split not in SPLITS:
     raise ValueError(f"load_split: split must be one of {SPLITS}, got {split!r}")
   fmt = data_config.format
   if fmt not in FORMATS:
-    raise ValueError(f"load_split: data.format must be one of {FORMATS}, got {fmt!r}")
+    raise DataConfigError(f"load_split: data.format must be one of {FORMATS}, got {fmt!r}")
   if not data_config.root:
     raise DataError("data.root is empty: point it at a data set, or let embedded.resolve_data "
                     "generate the embedded set first")
@@ -150,7 +155,7 @@ def load_split(data_config, split: str, *, max_scenes: Optional[int] = None) -> 
     raise DataError(f"{data_config.root}: data.root does not exist (or is not a folder)")
   frame = data_config.get("frame", "world")
   if frame not in FRAMES:
-    raise ValueError(f"load_split: data.frame must be one of {FRAMES}, got {frame!r}")
+    raise DataConfigError(f"load_split: data.frame must be one of {FRAMES}, got {frame!r}")
   loader = {"uorf": _load_uorf, "uocf": _load_uorf, "dtu": _load_dtu,
             "scannet": _load_scannet}[fmt]
   scenes = loader(data_config, split, max_scenes)

@@ -25,6 +25,11 @@ class DataError(ValueError):
   """Bad input on disk; the message always names the offending file and what is wrong."""
 
 
+class DataConfigError(DataError):
+  """A `data.*` field whose value no reader accepts; the message names the field. A DataError, so
+  every mode reports it in one line as it does a bad file."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Scene:
   name: str
