@@ -186,27 +186,25 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
   from slotlifter_jax import defaults
   current = json.loads(config.to_json_best_effort())
   base = json.loads(defaults.base_config().to_json_best_effort())
+  fields = sorted({f"{section}.{k}" for section in ARCHITECTURE_FIELDS
+                   for cfg in (saved, current, base) for k in cfg.get(section, {})}
+                  - set(NOT_ARCHITECTURE))
+  fields += [f for f in ALSO_ARCHITECTURE if f not in fields]
   diffs = []
-  for section in ARCHITECTURE_FIELDS:
-    a, b = dict(saved.get(section, {})), current.get(section, {})
-    for k, v in base.get(section, {}).items():
-      a.setdefault(k, v)
-    for k in sorted(set(a) | set(b)):
-      if f"{section}.{k}" in NOT_ARCHITECTURE:
-        continue
-      if _normalise(a.get(k)) != _normalise(b.get(k)):
-        diffs.append(f"{section}.{k}: saved {a.get(k)!r}, requested {b.get(k)!r}")
-  for field in ALSO_ARCHITECTURE:
-    section, k = field.split(".")
-    default = base.get(section, {}).get(k)
-    a = saved.get(section, {}).get(k, default)
-    b = current.get(section, {}).get(k, default)
+  for field in fields:
+    a, b = _field(saved, field, base), _field(current, field, base)
     if _normalise(a) != _normalise(b):
       diffs.append(f"{field}: saved {a!r}, requested {b!r}")
   if diffs:
     raise CheckpointMismatchError(
         f"{where}: the run in this directory was made with another model config:\n  "
         + "\n  ".join(diffs))
+
+
+def _field(cfg: dict, field: str, base: dict) -> Any:
+  """`cfg`'s value of "section.key", or the base config's when `cfg` predates the field."""
+  section, key = field.split(".")
+  return cfg.get(section, {}).get(key, base.get(section, {}).get(key))
 
 
 def _normalise(v: Any):
