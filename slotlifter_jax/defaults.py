@@ -134,6 +134,11 @@ def base_config() -> ml_collections.ConfigDict:
   t.grad_clip = 0.5
   t.mask_anneal_steps = 30_000  # masking ratio 0.99 → 0
   t.mask_max = 0.99
+  # Masking ratio the anneal ends at and holds (0: the paper's, every ray keeps its lifted features
+  # after mask_anneal_steps). Not in the paper: slot attention's grouping rises while rays are
+  # masked and fades once none are (experiments/README.md, "Fifth round"), a probe of issue
+  # "Objects emerge on this CPU". Evaluation never masks.
+  t.mask_min = 0.0
   t.noise_anneal_steps = 30_000  # slot init noise σ 1 → 0
   t.locality_steps = 50_000  # locality constraint on for the first N steps (0: never)
   t.max_nonfinite_in_row = 20

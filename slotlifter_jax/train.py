@@ -112,6 +112,14 @@ class _NoWriter:
 SAMPLERS = ("host", "device")
 
 
+def _check_masking(train_config) -> None:
+  """The masking ratios must satisfy 0 ≤ mask_min ≤ mask_max ≤ 1, or keep(t) leaves [0, 1]."""
+  low, high = float(train_config.get("mask_min", 0.0)), float(train_config.mask_max)
+  if not 0.0 <= low <= high <= 1.0:
+    raise ConfigError(f"train.mask_min={low} and train.mask_max={high} must satisfy "
+                      f"0 ≤ mask_min ≤ mask_max ≤ 1")
+
+
 def _check_sampler(config, train_scenes) -> bool:
   """Validates data.sampler, data.curriculum and train.steps_per_dispatch; True for "device"."""
   sampler = config.data.get("sampler", "host")
@@ -223,6 +231,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   # Nothing is created until the config and the data are known to be good.
   if os.path.exists(workdir) and not os.path.isdir(workdir):
     raise FileExistsError(f"{workdir}: exists and is not a directory; choose another --workdir")
+  _check_masking(config.train)
   saved = ckpt_lib.load_saved_config(workdir)
   ckpt_lib.check_compatible(config, saved, workdir)
   if saved is not None and saved.get("seed") != config.seed and os.path.isdir(

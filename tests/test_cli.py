@@ -128,6 +128,8 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
     (["--config=configs/clevr.py:smoke", "--num_processes=2"], "--process_id need --distributed"),
     (["--config=configs/clevr.py:smoke", "--config.data.frame=camera"],
      "data.frame must be one of ('world', 'source_azimuth'), got 'camera'"),
+    (["--config=configs/clevr.py:smoke", "--config.train.mask_min=0.995"],
+     "train.mask_min=0.995 and train.mask_max=0.99 must satisfy 0 ≤ mask_min ≤ mask_max ≤ 1"),
 ])
 def test_a_bad_command_line_gets_one_line_and_creates_nothing(tmp_path, args, message):
   shutil.copytree(os.path.join(REPO, "configs"), tmp_path / "configs")

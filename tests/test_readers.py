@@ -461,8 +461,9 @@ def test_source_azimuth_frame_rejects_pooled_sources_and_unknown_frames(tmp_path
 def test_source_azimuth_frame_names_a_scene_whose_source_has_no_azimuth(tmp_path):
   truth = fx.write_uorf_split(tmp_path / "clevr_567_train", num_scenes=3, views=4, size=(6, 6))
   stem = truth["stems"]["sc0001"][0]  # sc0001's source view: straight above the scene's centre
-  overhead = fx.look_at([0.0, 0.0, 12.4])
-  overhead[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking down (look_at cannot, z is its up)
+  overhead = np.eye(4)  # camera-to-world, built by hand: look_at cannot look along its up axis z
+  overhead[:3, :3] = np.diag([1.0, -1.0, -1.0])  # looking straight down
+  overhead[:3, 3] = [0.0, 0.0, 12.4]
   np.savetxt(tmp_path / "clevr_567_train" / f"{stem}_RT.txt", overhead, fmt="%.8f")
   with pytest.raises(registry.DataError, match=r"sc0001: data.frame='source_azimuth': view 0"):
     registry.load_split(data_config(root=str(tmp_path), frame="source_azimuth"), "train")

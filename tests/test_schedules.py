@@ -25,6 +25,16 @@ def test_keep_ratio_and_noise_match_spec(t):
                              atol=1e-6)
 
 
+@pytest.mark.parametrize("t, expected", [
+    (0, 0.01),  # masked share 0.99
+    (10_000, 1 - (0.3 + 0.69 * 0.5)),  # halfway: masked share midway between 0.99 and 0.3
+    (5_000, 1 - (0.3 + 0.69 * (np.cos(np.pi / 4) + 1) / 2)),
+    (20_000, 0.7), (60_000, 0.7)])  # after the anneal the masked share stays at mask_min
+def test_keep_ratio_with_a_masking_floor(t, expected):
+  keep = schedules.keep_ratio(t, mask_max=0.99, anneal_steps=20_000, mask_min=0.3)
+  np.testing.assert_allclose(keep, expected, atol=1e-6)
+
+
 def test_endpoints_and_locality():
   np.testing.assert_allclose(schedules.keep_ratio(0, mask_max=0.99, anneal_steps=30_000), 0.01,
                              atol=1e-6)
