@@ -135,7 +135,19 @@ def plot(run_dir: str, out: str) -> None:
   print(f"wrote {out}")
 
 
-if __name__ == "__main__":
-  run = sys.argv[1]
+def main(argv: list[str]) -> None:
+  if len(argv) > 1 and argv[1] in ("-h", "--help"):
+    print(__doc__)
+    return
+  if len(argv) not in (2, 3):
+    sys.exit(f"usage: {__doc__.splitlines()[0].split('`')[1]}")
+  run = argv[1]
+  if not os.path.isfile(run) and not os.path.isfile(os.path.join(run, emergence.METRICS_FILE)):
+    sys.exit(f"error: {run}: neither a metrics .jsonl file nor a run folder with "
+             f"{emergence.METRICS_FILE}")
   default = os.path.splitext(run)[0] + ".png" if os.path.isfile(run) else os.path.join(run, "curves.png")
-  plot(run, sys.argv[2] if len(sys.argv) > 2 else default)
+  plot(run, argv[2] if len(argv) > 2 else default)
+
+
+if __name__ == "__main__":
+  main(sys.argv)

@@ -265,3 +265,12 @@ def test_plot_curves_command_line(tmp_path, with_wall):
                           capture_output=True, text=True, timeout=300, env=env)
   assert result.returncode == 0, result.stderr
   assert out.stat().st_size > 0
+
+
+def test_plot_curves_names_a_missing_log_in_one_line_and_writes_nothing(tmp_path):
+  result = subprocess.run([sys.executable, PLOT_CURVES, str(tmp_path / "no_run")],
+                          capture_output=True, text=True, timeout=300, cwd=str(tmp_path))
+  assert result.returncode == 1
+  assert result.stderr.strip() == (f"error: {tmp_path / 'no_run'}: neither a metrics .jsonl file "
+                                   f"nor a run folder with metrics.jsonl")
+  assert os.listdir(tmp_path) == []
