@@ -139,6 +139,7 @@ def base_config() -> ml_collections.ConfigDict:
   # masked and fades once none are (experiments/README.md, "Fifth round"), a probe of issue
   # "Objects emerge on this CPU". Evaluation never masks.
   t.mask_min = 0.0
+  t.mask_min_steps = 0  # the floor holds until this step, then every ray keeps its features (0: never)
   t.noise_anneal_steps = 30_000  # slot init noise σ 1 → 0
   t.locality_steps = 50_000  # locality constraint on for the first N steps (0: never)
   t.max_nonfinite_in_row = 20

@@ -43,15 +43,20 @@ def _cosine_to_zero(t, steps: int):
   return jnp.where(t < steps, 0.5 * (jnp.cos(jnp.pi * t / steps) + 1.0), 0.0)
 
 
-def keep_ratio(t, *, mask_max: float, anneal_steps: int, mask_min: float = 0.0):
+def keep_ratio(t, *, mask_max: float, anneal_steps: int, mask_min: float = 0.0,
+               mask_min_steps: int = 0):
   """Fraction of rays that keep their lifted features (docs/method.md §1.3).
 
-  keep(t) = 1 − mask_min − (mask_max − mask_min)·(cos(π t/T)+1)/2 for t < T, else 1 − mask_min:
-  with mask_max = 0.99 and mask_min = 0 (the paper's) the masking ratio anneals 0.99 → 0, i.e.
-  1 − (0.495 cos(π t/30 000) + 0.495). A mask_min > 0 leaves that share of rays masked for good,
-  so the slots keep carrying their rendering after the anneal (docs/method.md §1.3).
+  keep(t) = 1 − m − (mask_max − m)·(cos(π t/T)+1)/2 for t < T, else 1 − m, where the floor m is
+  mask_min until step mask_min_steps (0: for good) and 0 from then on. With mask_max = 0.99 and
+  mask_min = 0 (the paper's) the masking ratio anneals 0.99 → 0, i.e.
+  1 − (0.495 cos(π t/30 000) + 0.495). A floor leaves that share of rays masked after the anneal,
+  so the slots keep carrying their rendering; its release lets every ray use its lifted features
+  for the last steps.
   """
-  return 1.0 - mask_min - (mask_max - mask_min) * _cosine_to_zero(t, anneal_steps)
+  t = jnp.asarray(t, jnp.float32)
+  floor = mask_min if mask_min_steps <= 0 else jnp.where(t < mask_min_steps, mask_min, 0.0)
+  return 1.0 - floor - (mask_max - floor) * _cosine_to_zero(t, anneal_steps)
 
 
 def slot_noise_sigma(t, *, anneal_steps: int):
@@ -71,7 +76,8 @@ def all_schedules(t, train_config) -> dict:
       lr_backbone=backbone_lr(t, c),
       lr_head=head_lr(t, c),
       keep_ratio=keep_ratio(t, mask_max=c.mask_max, anneal_steps=c.mask_anneal_steps,
-                            mask_min=c.get("mask_min", 0.0)),
+                            mask_min=c.get("mask_min", 0.0),
+                            mask_min_steps=c.get("mask_min_steps", 0)),
       slot_noise_sigma=slot_noise_sigma(t, anneal_steps=c.noise_anneal_steps),
       locality=locality_on(t, steps=c.locality_steps),
   )

@@ -113,11 +113,14 @@ SAMPLERS = ("host", "device")
 
 
 def _check_masking(train_config) -> None:
-  """The masking ratios must satisfy 0 ≤ mask_min ≤ mask_max ≤ 1, or keep(t) leaves [0, 1]."""
+  """0 ≤ mask_min ≤ mask_max ≤ 1, or keep(t) leaves [0, 1]; the floor's release step ≥ 0."""
   low, high = float(train_config.get("mask_min", 0.0)), float(train_config.mask_max)
   if not 0.0 <= low <= high <= 1.0:
     raise ConfigError(f"train.mask_min={low} and train.mask_max={high} must satisfy "
                       f"0 ≤ mask_min ≤ mask_max ≤ 1")
+  if int(train_config.get("mask_min_steps", 0)) < 0:
+    raise ConfigError(f"train.mask_min_steps={train_config.mask_min_steps} must be ≥ 0 "
+                      f"(0 holds the floor for good)")
 
 
 def _check_sampler(config, train_scenes) -> bool:

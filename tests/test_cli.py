@@ -130,6 +130,8 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
      "data.frame must be one of ('world', 'source_azimuth'), got 'camera'"),
     (["--config=configs/clevr.py:smoke", "--config.train.mask_min=0.995"],
      "train.mask_min=0.995 and train.mask_max=0.99 must satisfy 0 ≤ mask_min ≤ mask_max ≤ 1"),
+    (["--config=configs/clevr.py:smoke", "--config.train.mask_min_steps=-1"],
+     "train.mask_min_steps=-1 must be ≥ 0"),
 ])
 def test_a_bad_command_line_gets_one_line_and_creates_nothing(tmp_path, args, message):
   shutil.copytree(os.path.join(REPO, "configs"), tmp_path / "configs")

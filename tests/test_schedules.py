@@ -35,6 +35,17 @@ def test_keep_ratio_with_a_masking_floor(t, expected):
   np.testing.assert_allclose(keep, expected, atol=1e-6)
 
 
+@pytest.mark.parametrize("t, release, expected", [
+    (29_999, 30_000, 0.7),  # the floor holds until its release step…
+    (30_000, 30_000, 1.0), (45_000, 30_000, 1.0),  # …and from then on no ray is masked
+    (10_000, 5_000, 1 - 0.99 * 0.5),  # released inside the anneal: the paper's schedule there
+    (0, 5_000, 0.01)])
+def test_keep_ratio_floor_release(t, release, expected):
+  keep = schedules.keep_ratio(t, mask_max=0.99, anneal_steps=20_000, mask_min=0.3,
+                              mask_min_steps=release)
+  np.testing.assert_allclose(keep, expected, atol=1e-6)
+
+
 def test_endpoints_and_locality():
   np.testing.assert_allclose(schedules.keep_ratio(0, mask_max=0.99, anneal_steps=30_000), 0.01,
                              atol=1e-6)
