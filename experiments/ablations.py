@@ -11,7 +11,7 @@ Variants (VARIANTS below), each over --seeds seeds (default 3):
   full             the method
   no_lifting       model.feature_lifting = False: point feature E_p only, views reach points only
                    through the slots
-  no_masking       train.mask_max = 0: the keep ratio is 1 at every step (no random masking)
+  no_masking       train.mask_max = mask_min = 0: the keep ratio is 1 at every step (no random masking)
   no_slot_density  model.density_mode = "mlp": σ from a small head on the allocation transformer's
                    output instead of the slot-based formula (decoder.mlp_density)
 Every run trains --num_steps steps with the schedules scaled to the budget (study_common.py) and is
@@ -49,7 +49,7 @@ EVAL_SCENES = 20
 VARIANTS = {
     "full": {},
     "no_lifting": {"model.feature_lifting": False},
-    "no_masking": {"train.mask_max": 0.0},
+    "no_masking": {"train.mask_max": 0.0, "train.mask_min": 0.0},
     "no_slot_density": {"model.density_mode": "mlp"},
 }
 # (metric, header, scale, digits) of the table: ARIs ×100 as in the paper.

@@ -168,7 +168,9 @@ def measure(name: str, steps: int, render_repeats: int, dtype: str | None = None
     from slotlifter_jax.data import pipeline
     sampler = pipeline.BatchSampler(train_scenes, batch_scenes=c.batch_scenes,
                                     rays_per_scene=c.rays_per_scene, num_source_views=1,
-                                    novel_ray_prob=config.data.novel_ray_prob, seed=0)
+                                    novel_ray_prob=config.data.novel_ray_prob, seed=0,
+                                    ray_sampling=config.data.ray_sampling,
+                                    contrast_mix=config.data.contrast_mix)
     mesh = step_lib.make_mesh()
     host = []
     for i in range(steps):

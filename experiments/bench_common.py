@@ -26,10 +26,12 @@ CONFIGS = {
     # The scene-sized model (host batches, one step per dispatch).
     "fast": dict(variant="fast", overrides={}),
     # fast with its batch drawn inside the jitted step (data.sampler=device).
-    "fast_device": dict(variant="fast", overrides={"data.sampler": "device"}),
+    "fast_device": dict(variant="fast", overrides={"data.sampler": "device",
+                                                   "data.ray_sampling": "uniform"}),
     # fast_device with 10 steps per dispatch under lax.scan, timed per step (XLA:CPU compiles a
     # loop body's conv gradients poorly: slower, not faster).
     "fast_scan10": dict(variant="fast", overrides={"data.sampler": "device",
+                                                   "data.ray_sampling": "uniform",
                                                    "train.steps_per_dispatch": 10}),
 }
 
