@@ -327,8 +327,9 @@ def fast(c):
   the same schedules (to 30 000, resumed to 50 000, then released to 60 000): it reached
   FG-ARI 0.5 at 17.7 min and 0.8 at 48.0 min; its best checkpoint (step 60 000, by validation
   NV-ARI) scores on the 100-scene test split FG-ARI 0.763, NV-ARI 0.847, novel PSNR 26.3 dB
-  (`experiments/results/clevr_probe_full_floor5_release50k_test_metrics.json`). With seed 1
-  the same recipe splits objects less well (experiments/README.md).
+  (`experiments/results/clevr_probe_full_floor5_release50k_test_metrics.json`). Seeds 1 and 2
+  split less well: FG-ARI 0.69 and 0.73 with the floor held, against seed 0's 0.82 (experiments/
+  README.md, "Fifth round").
   """
   c = quick(c)
   c.model.slot_dim = 32
