@@ -8,6 +8,7 @@ import sys
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
+_FAST_DEVICE = {"data.sampler": "device", "data.ray_sampling": "uniform"}
 CONFIGS = {
     "A": dict(variant="", overrides={"data.image_size": 128, "render.num_samples": 96,
                                      "train.batch_scenes": 2, "train.rays_per_scene": 1024,
@@ -26,13 +27,11 @@ CONFIGS = {
     # The scene-sized model (host batches, one step per dispatch).
     "fast": dict(variant="fast", overrides={}),
     # fast with its batch drawn inside the jitted step (data.sampler=device).
-    "fast_device": dict(variant="fast", overrides={"data.sampler": "device",
-                                                   "data.ray_sampling": "uniform"}),
+    # (The device sampler draws uniform rays only.)
+    "fast_device": dict(variant="fast", overrides=_FAST_DEVICE),
     # fast_device with 10 steps per dispatch under lax.scan, timed per step (XLA:CPU compiles a
     # loop body's conv gradients poorly: slower, not faster).
-    "fast_scan10": dict(variant="fast", overrides={"data.sampler": "device",
-                                                   "data.ray_sampling": "uniform",
-                                                   "train.steps_per_dispatch": 10}),
+    "fast_scan10": dict(variant="fast", overrides={**_FAST_DEVICE, "train.steps_per_dispatch": 10}),
 }
 
 
