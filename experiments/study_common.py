@@ -163,7 +163,7 @@ def budget_config(config, num_steps: int, *, scale_schedules: bool = True,
   if scale_schedules:
     factor = num_steps / int(t.num_steps)
     for field in ("warmup_steps", "decay_steps", "mask_anneal_steps", "noise_anneal_steps",
-                  "locality_steps", "mask_min_steps"):
+                  "locality_steps", "mask_min_steps", "mask_min_release_steps"):
       t[field] = _scaled(int(t[field]), factor)
   t.num_steps = int(num_steps)
   t.eval_every = max(1, num_steps // max(1, num_validations))

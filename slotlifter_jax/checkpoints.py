@@ -4,7 +4,7 @@ of a trained run's parameters for --mode=eval and --mode=render (`restore_params
 Layout of a work directory:
   DIR/config.json            the config the run was started with (compared on resume and eval)
   DIR/checkpoints/latest/N   the last few train states (orbax, written atomically)
-  DIR/checkpoints/best/N     the best state by validation score (NV-ARI, or PSNR without masks)
+  DIR/checkpoints/best/N     the best state by validation score (train.select_by; PSNR without masks)
 """
 
 from __future__ import annotations

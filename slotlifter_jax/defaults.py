@@ -140,6 +140,10 @@ def base_config() -> ml_collections.ConfigDict:
   # "Objects emerge on this CPU". Evaluation never masks.
   t.mask_min = 0.0
   t.mask_min_steps = 0  # the floor holds until this step, then every ray keeps its features (0: never)
+  t.mask_min_release_steps = 0  # lower the floor to 0 along a cosine over this many steps (0: at once)
+  # What the best checkpoint maximises on validation: "nv_ari", "min_fg_nv" (the worse of FG-ARI
+  # and NV-ARI) or "psnr_novel"; sets without masks always use novel-view PSNR (docs/method.md §4).
+  t.select_by = "nv_ari"
   t.noise_anneal_steps = 30_000  # slot init noise σ 1 → 0
   t.locality_steps = 50_000  # locality constraint on for the first N steps (0: never)
   t.max_nonfinite_in_row = 20
@@ -354,6 +358,8 @@ def fast(c):
   c.train.locality_steps = 20_000
   c.train.mask_min = 0.5
   c.train.mask_min_steps = 50_000
+  c.train.mask_min_release_steps = 10_000
+  c.train.select_by = "min_fg_nv"
   c.train.log_every = 50
   c.train.eval_every = 2000
   c.train.eval_scenes = 20

@@ -44,18 +44,24 @@ def _cosine_to_zero(t, steps: int):
 
 
 def keep_ratio(t, *, mask_max: float, anneal_steps: int, mask_min: float = 0.0,
-               mask_min_steps: int = 0):
+               mask_min_steps: int = 0, mask_min_release_steps: int = 0):
   """Fraction of rays that keep their lifted features (docs/method.md §1.3).
 
   keep(t) = 1 − m − (mask_max − m)·(cos(π t/T)+1)/2 for t < T, else 1 − m, where the floor m is
-  mask_min until step mask_min_steps (0: for good) and 0 from then on. With mask_max = 0.99 and
+  mask_min until step mask_min_steps (0: for good), then lowered to 0 along a cosine over
+  mask_min_release_steps steps (0: at once), m = mask_min·(cos(π (t − S)/R)+1)/2 for
+  S ≤ t < S + R. With mask_max = 0.99 and
   mask_min = 0 (the paper's) the masking ratio anneals 0.99 → 0, i.e.
   1 − (0.495 cos(π t/30 000) + 0.495). A floor leaves that share of rays masked after the anneal,
   so the slots keep carrying their rendering; its release lets every ray use its lifted features
-  for the last steps.
+  for the last steps, and a gradual release hands the rays back a few at a time.
   """
   t = jnp.asarray(t, jnp.float32)
-  floor = mask_min if mask_min_steps <= 0 else jnp.where(t < mask_min_steps, mask_min, 0.0)
+  if mask_min_steps <= 0:
+    floor = mask_min
+  else:
+    released = _cosine_to_zero(jnp.maximum(t - mask_min_steps, 0.0), mask_min_release_steps)
+    floor = mask_min * jnp.where(t < mask_min_steps, 1.0, released)
   return 1.0 - floor - (mask_max - floor) * _cosine_to_zero(t, anneal_steps)
 
 
@@ -77,7 +83,8 @@ def all_schedules(t, train_config) -> dict:
       lr_head=head_lr(t, c),
       keep_ratio=keep_ratio(t, mask_max=c.mask_max, anneal_steps=c.mask_anneal_steps,
                             mask_min=c.get("mask_min", 0.0),
-                            mask_min_steps=c.get("mask_min_steps", 0)),
+                            mask_min_steps=c.get("mask_min_steps", 0),
+                            mask_min_release_steps=c.get("mask_min_release_steps", 0)),
       slot_noise_sigma=slot_noise_sigma(t, anneal_steps=c.noise_anneal_steps),
       locality=locality_on(t, steps=c.locality_steps),
   )

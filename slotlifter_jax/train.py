@@ -113,7 +113,8 @@ SAMPLERS = ("host", "device")
 
 
 def _check_masking(train_config) -> None:
-  """0 ≤ mask_min ≤ mask_max ≤ 1, or keep(t) leaves [0, 1]; the floor's release step ≥ 0."""
+  """0 ≤ mask_min ≤ mask_max ≤ 1, or keep(t) leaves [0, 1]; the floor's release step and its
+  length ≥ 0."""
   low, high = float(train_config.get("mask_min", 0.0)), float(train_config.mask_max)
   if not 0.0 <= low <= high <= 1.0:
     raise ConfigError(f"train.mask_min={low} and train.mask_max={high} must satisfy "
@@ -121,6 +122,16 @@ def _check_masking(train_config) -> None:
   if int(train_config.get("mask_min_steps", 0)) < 0:
     raise ConfigError(f"train.mask_min_steps={train_config.mask_min_steps} must be ≥ 0 "
                       f"(0 holds the floor for good)")
+  if int(train_config.get("mask_min_release_steps", 0)) < 0:
+    raise ConfigError(f"train.mask_min_release_steps={train_config.mask_min_release_steps} must "
+                      f"be ≥ 0 (0 releases the floor at once)")
+
+
+def _check_selection(train_config) -> None:
+  select_by = train_config.get("select_by", "nv_ari")
+  if select_by not in validation.SELECT_BY:
+    raise ConfigError(f"train.select_by must be one of {validation.SELECT_BY}, "
+                      f"got {select_by!r}")
 
 
 def _check_sampler(config, train_scenes) -> bool:
@@ -235,6 +246,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   if os.path.exists(workdir) and not os.path.isdir(workdir):
     raise FileExistsError(f"{workdir}: exists and is not a directory; choose another --workdir")
   _check_masking(config.train)
+  _check_selection(config.train)
   saved = ckpt_lib.load_saved_config(workdir)
   ckpt_lib.check_compatible(config, saved, workdir)
   if saved is not None and saved.get("seed") != config.seed and os.path.isdir(

@@ -41,6 +41,28 @@ def collapse_statistics(*, segmentation, rendered, target, foreground=None) -> d
       probe_pixel_entropy=mean(usage.pixel_entropy))
 
 
+SELECT_BY = ("nv_ari", "min_fg_nv", "psnr_novel")
+
+
+def selection_score(result: dict, select_by: str, *, has_masks: bool) -> float:
+  """The number the best checkpoint maximises (docs/method.md §4; `train.select_by`).
+
+  "nv_ari"; "min_fg_nv", the worse of FG-ARI and NV-ARI, so that a checkpoint whose scene
+  segmentation improved while its objects merged does not win; "psnr_novel". A set without masks
+  has no ARI, so it is always scored by novel-view PSNR. Not finite (no foreground in any view):
+  −1, below any real score.
+  """
+  if select_by not in SELECT_BY:
+    raise ValueError(f"train.select_by must be one of {SELECT_BY}, got {select_by!r}")
+  if not has_masks or select_by == "psnr_novel":
+    score = result.get("psnr_novel", np.nan)
+  elif select_by == "min_fg_nv":
+    score = np.minimum(result.get("fg_ari", np.nan), result.get("nv_ari", np.nan))
+  else:
+    score = result.get("nv_ari", np.nan)
+  return float(score) if np.isfinite(score) else -1.0
+
+
 class Validator:
   """Renders a few validation scenes during training, scores them and writes a PNG panel."""
 
@@ -56,6 +78,7 @@ class Validator:
     self.has_masks = self.use_masks and all(s.masks is not None for s in scenes)
     self.near, self.far = config.render.near, config.render.far
     self.locality_steps = int(config.train.locality_steps)
+    self.select_by = config.train.get("select_by", "nv_ari")
 
   def run(self, params, step: int) -> dict:
     # `step` updates have been applied, so the next training step is `step`.
@@ -90,11 +113,7 @@ class Validator:
           segmentation=np.concatenate(probe_seg), rendered=np.concatenate(probe_rgb),
           target=np.concatenate(probe_target),
           foreground=np.concatenate(probe_fg) if self.has_masks else None))
-    # Model selection (docs/method.md §4): NV-ARI where the set has masks, else novel-view PSNR.
-    score_key = "nv_ari" if self.has_masks else "psnr_novel"
-    result["score"] = result.get(score_key, np.nan)
-    if not np.isfinite(result["score"]):
-      result["score"] = -1.0
+    result["score"] = selection_score(result, self.select_by, has_masks=self.has_masks)
     if rows and self.write_pictures:
       vis.save_png(os.path.join(self.workdir, "val", f"step_{step:07d}.png"), vis.grid(rows))
     return result

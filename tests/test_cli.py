@@ -132,6 +132,10 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
      "train.mask_min=0.995 and train.mask_max=0.99 must satisfy 0 ≤ mask_min ≤ mask_max ≤ 1"),
     (["--config=configs/clevr.py:smoke", "--config.train.mask_min_steps=-1"],
      "train.mask_min_steps=-1 must be ≥ 0"),
+    (["--config=configs/clevr.py:smoke", "--config.train.mask_min_release_steps=-5"],
+     "train.mask_min_release_steps=-5 must be ≥ 0"),
+    (["--config=configs/clevr.py:smoke", "--config.train.select_by=fg_ari"],
+     "train.select_by must be one of ('nv_ari', 'min_fg_nv', 'psnr_novel'), got 'fg_ari'"),
 ])
 def test_a_bad_command_line_gets_one_line_and_creates_nothing(tmp_path, args, message):
   shutil.copytree(os.path.join(REPO, "configs"), tmp_path / "configs")

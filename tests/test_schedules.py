@@ -46,6 +46,25 @@ def test_keep_ratio_floor_release(t, release, expected):
   np.testing.assert_allclose(keep, expected, atol=1e-6)
 
 
+@pytest.mark.parametrize("t, expected", [
+    (49_999, 0.5),  # held at 0.5 until the release starts
+    (50_000, 0.5),  # the cosine starts at the floor itself: no jump
+    (52_500, 1 - 0.5 * (np.cos(np.pi / 4) + 1) / 2),
+    (55_000, 0.75),  # halfway through the release: half the floor
+    (60_000, 1.0), (70_000, 1.0)])  # released in full after mask_min_release_steps
+def test_keep_ratio_gradual_release(t, expected):
+  keep = schedules.keep_ratio(t, mask_max=0.99, anneal_steps=20_000, mask_min=0.5,
+                              mask_min_steps=50_000, mask_min_release_steps=10_000)
+  np.testing.assert_allclose(keep, expected, atol=1e-6)
+
+
+def test_gradual_release_needs_a_release_step():
+  # Without a release step the floor holds for good, whatever the release length says.
+  keep = schedules.keep_ratio(80_000, mask_max=0.99, anneal_steps=20_000, mask_min=0.5,
+                              mask_min_release_steps=10_000)
+  np.testing.assert_allclose(keep, 0.5, atol=1e-6)
+
+
 def test_endpoints_and_locality():
   np.testing.assert_allclose(schedules.keep_ratio(0, mask_max=0.99, anneal_steps=30_000), 0.01,
                              atol=1e-6)

@@ -192,7 +192,8 @@ def test_ablation_variants_switch_what_they_name():
   steps = np.arange(0, t.num_steps + 10)
   keep = np.asarray(schedules.keep_ratio(steps, mask_max=t.mask_max,
                                          anneal_steps=t.mask_anneal_steps, mask_min=t.mask_min,
-                                         mask_min_steps=t.mask_min_steps))
+                                         mask_min_steps=t.mask_min_steps,
+                                         mask_min_release_steps=t.mask_min_release_steps))
   assert np.all(keep == 1.0)
   assert schedules.keep_ratio(0, mask_max=full.train.mask_max,
                               anneal_steps=full.train.mask_anneal_steps) < 0.02

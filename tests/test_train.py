@@ -280,3 +280,22 @@ def test_collapsed_run_is_kept_and_restarted_from_the_next_seed(tmp_path, monkey
     saved = json.load(f)
   assert saved["seed"] == 1 and saved["train"]["collapse_restarts"] == 0
   assert _final_params(workdir, config)[0] == config.train.num_steps
+
+
+@pytest.mark.parametrize("select_by, has_masks, expected", [
+    ("nv_ari", True, 0.84),
+    ("min_fg_nv", True, 0.61),  # the objects merged while the scene split improved: FG-ARI rules
+    ("psnr_novel", True, 26.0),
+    ("min_fg_nv", False, 26.0),  # no masks, no ARI: novel-view PSNR whatever was asked
+])
+def test_selection_score(select_by, has_masks, expected):
+  result = {"fg_ari": 0.61, "nv_ari": 0.84, "psnr_novel": 26.0}
+  assert validation.selection_score(result, select_by, has_masks=has_masks) == pytest.approx(
+      expected)
+
+
+def test_selection_score_without_a_foreground_ranks_last():
+  # FG-ARI is NaN when no validation view shows an object; min() must not drop it silently.
+  result = {"fg_ari": float("nan"), "nv_ari": 0.9, "psnr_novel": 30.0}
+  assert validation.selection_score(result, "min_fg_nv", has_masks=True) == -1.0
+  assert validation.selection_score(result, "nv_ari", has_masks=True) == pytest.approx(0.9)

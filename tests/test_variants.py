@@ -56,15 +56,19 @@ def test_unknown_variant_is_named():
     clevr("fast+fsat")
 
 
-def test_fast_keeps_half_the_rays_masked_until_its_release():
+def test_fast_keeps_half_the_rays_masked_until_its_gradual_release():
   from slotlifter_jax import schedules
   fast = clevr("fast")
   t = fast.train
   keep = lambda step: float(schedules.keep_ratio(
       step, mask_max=t.mask_max, anneal_steps=t.mask_anneal_steps, mask_min=t.mask_min,
-      mask_min_steps=t.mask_min_steps))
+      mask_min_steps=t.mask_min_steps, mask_min_release_steps=t.mask_min_release_steps))
   assert keep(0) == pytest.approx(0.01)  # the paper's start: 99 % of the rays masked
-  assert keep(t.mask_anneal_steps) == keep(t.mask_min_steps - 1) == pytest.approx(0.5)
-  assert keep(t.mask_min_steps) == keep(t.num_steps) == 1.0  # released before the run ends
-  assert t.mask_anneal_steps < t.mask_min_steps < t.num_steps
+  assert keep(t.mask_anneal_steps) == keep(t.mask_min_steps) == pytest.approx(0.5)
+  # Released gradually: a quarter of the rays masked halfway through the release, none at the end.
+  assert keep(t.mask_min_steps + t.mask_min_release_steps // 2) == pytest.approx(0.75)
+  assert keep(t.num_steps) == 1.0
+  assert t.mask_anneal_steps < t.mask_min_steps
+  assert t.mask_min_steps + t.mask_min_release_steps <= t.num_steps
+  assert t.select_by == "min_fg_nv"
   assert (fast.data.frame, fast.data.ray_sampling) == ("source_azimuth", "contrast")
