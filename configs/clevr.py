@@ -4,7 +4,7 @@ Default = the paper's settings (docs/method.md §1–2): 128×128, 1 source view
 samples, 4 scenes × 1024 rays, 250k steps, locality for 50k steps.
 
 Run:
-  python -m slotlifter_jax.main --config=configs/clevr.py:quick --workdir=runs/clevr_quick
+  python -m slotlifter_jax.main --config=configs/clevr.py:fast --workdir=runs/clevr_fast
   python -m slotlifter_jax.main --config=configs/clevr.py --config.data.root=/path/to/clevr --workdir=...
 Variants: `quick` (CPU-sized run of the same method), `fast` (the scene-sized CPU model: many
 cheap steps), `easy` (1–3 larger objects; compose as `fast+easy`), `smoke` (about a minute, for

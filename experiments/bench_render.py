@@ -47,7 +47,7 @@ sys.path.insert(0, REPO)
 from slotlifter_jax import runtime  # noqa: E402  (no JAX import)
 from experiments import bench_common  # noqa: E402
 
-flags.DEFINE_string("workdir", "runs/clevr_quick", "A trained configs/clevr.py:quick run (the README's first command).")
+flags.DEFINE_string("workdir", "runs/clevr_quick", "A trained configs/clevr.py:quick run (the README's first command before `fast`).")
 flags.DEFINE_string("checkpoint", "", "Checkpoint of --workdir: '' (best, else latest), best, "
                     "latest or a step.")
 flags.DEFINE_integer("scenes", 20, "Test scenes for the quality part.")

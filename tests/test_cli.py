@@ -1,5 +1,5 @@
 """The README's commands, run as a new user runs them: `python -m slotlifter_jax.main` in a fresh
-folder with relative paths, the smoke variant in place of quick.
+folder with relative paths, the smoke variant in place of fast.
 
 Train, SIGINT, resume, eval and render, checking exit codes and files. The README is read too: a
 `slotlifter_jax.main` command it shows with a mode or flag this test does not run fails the test,
@@ -53,12 +53,12 @@ def test_every_readme_command_is_one_this_file_runs():
 
 
 def _readme_command(mode: str) -> list[str]:
-  """The README's quick command of `mode`, with the smoke variant."""
+  """The README's first (`fast`) command of `mode`, with the smoke variant."""
   for args in readme_commands():
-    if (mode_and_flags(args)[0] == mode and "configs/clevr.py:quick" in " ".join(args)
+    if (mode_and_flags(args)[0] == mode and "configs/clevr.py:fast" in " ".join(args)
         and "--distributed" not in args):
-      return [a.replace("configs/clevr.py:quick", "configs/clevr.py:smoke") for a in args]
-  raise AssertionError(f"README shows no quick {mode} command")
+      return [a.replace("configs/clevr.py:fast", "configs/clevr.py:smoke") for a in args]
+  raise AssertionError(f"README shows no fast {mode} command")
 
 
 def _main(args, cwd, **kwargs):
