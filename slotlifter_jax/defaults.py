@@ -124,6 +124,11 @@ def base_config() -> ml_collections.ConfigDict:
   t.lr_floor = 0.02
   t.warmup_steps = 10_000
   t.decay_steps = 50_000  # half-life of the exponential decay
+  # Both rates times a cosine from 1 down to lr_cooldown_final over the last lr_cooldown_steps
+  # steps of num_steps (0: none, the paper's). Not in the paper: for runs whose rate is held
+  # near its base to the end (schedules.cooldown_factor).
+  t.lr_cooldown_steps = 0
+  t.lr_cooldown_final = 0.1
   # "lion" (paper) or "adamw" (Lion moves every weight by ±lr each step whatever the gradient's
   # size; AdamW was tried for the small quick batch and fitted one scene no faster: README).
   t.optimizer = "lion"

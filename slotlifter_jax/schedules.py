@@ -20,19 +20,41 @@ def head_lr_factor(t, *, floor: float, decay_steps: int):
   return floor + (1.0 - floor) * 0.5 ** (t / decay_steps)
 
 
+def cooldown_factor(t, *, num_steps: int, cooldown_steps: int, final: float):
+  """1 until step num_steps − cooldown_steps, then a cosine down to `final` at num_steps.
+
+  Not in the paper (whose rates decay over 250 000 steps): a run held near its base rate ends
+  while Lion still moves every weight by ±lr a step; lowering the rate over the last steps lets
+  it settle (docs/method.md §2). cooldown_steps = 0: no cooldown.
+  """
+  t = jnp.asarray(t, jnp.float32)
+  if cooldown_steps <= 0:
+    return jnp.ones_like(t)
+  start = num_steps - cooldown_steps
+  return final + (1.0 - final) * jnp.where(
+      t < start, 1.0, _cosine_to_zero(jnp.maximum(t - start, 0.0), cooldown_steps))
+
+
+def _cooldown(t, c):
+  return cooldown_factor(t, num_steps=c.num_steps, cooldown_steps=c.get("lr_cooldown_steps", 0),
+                         final=c.get("lr_cooldown_final", 0.1))
+
+
 def backbone_lr(t, train_config):
-  """The backbone's learning rate at step t: base_lr · backbone_lr_factor. The one definition that
-  both the optimiser (train_step.make_optimizer) and the logged `lr_backbone` use, so the number
-  in the metrics is the rate that was applied."""
+  """The backbone's learning rate at step t: base_lr · backbone_lr_factor · cooldown. The one
+  definition that both the optimiser (train_step.make_optimizer) and the logged `lr_backbone`
+  use, so the number in the metrics is the rate that was applied."""
   c = train_config
-  return c.base_lr * backbone_lr_factor(
+  return c.base_lr * _cooldown(t, c) * backbone_lr_factor(
       t, floor=c.lr_floor, warmup_steps=c.warmup_steps, decay_steps=c.decay_steps)
 
 
 def head_lr(t, train_config):
-  """The head's learning rate at step t: base_lr · head_lr_factor (optimiser and `lr_head`)."""
+  """The head's learning rate at step t: base_lr · head_lr_factor · cooldown (optimiser and
+  `lr_head`)."""
   c = train_config
-  return c.base_lr * head_lr_factor(t, floor=c.lr_floor, decay_steps=c.decay_steps)
+  return c.base_lr * _cooldown(t, c) * head_lr_factor(t, floor=c.lr_floor,
+                                                      decay_steps=c.decay_steps)
 
 
 def _cosine_to_zero(t, steps: int):

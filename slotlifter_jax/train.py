@@ -127,6 +127,16 @@ def _check_masking(train_config) -> None:
                       f"be ≥ 0 (0 releases the floor at once)")
 
 
+def _check_cooldown(train_config) -> None:
+  steps = int(train_config.get("lr_cooldown_steps", 0))
+  if not 0 <= steps <= int(train_config.num_steps):
+    raise ConfigError(f"train.lr_cooldown_steps={steps} must lie in [0, train.num_steps="
+                      f"{train_config.num_steps}]")
+  final = float(train_config.get("lr_cooldown_final", 0.1))
+  if not 0.0 <= final <= 1.0:
+    raise ConfigError(f"train.lr_cooldown_final={final} must lie in [0, 1]")
+
+
 def _check_selection(train_config) -> None:
   select_by = train_config.get("select_by", "nv_ari")
   if select_by not in validation.SELECT_BY:
@@ -246,6 +256,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   if os.path.exists(workdir) and not os.path.isdir(workdir):
     raise FileExistsError(f"{workdir}: exists and is not a directory; choose another --workdir")
   _check_masking(config.train)
+  _check_cooldown(config.train)
   _check_selection(config.train)
   saved = ckpt_lib.load_saved_config(workdir)
   ckpt_lib.check_compatible(config, saved, workdir)

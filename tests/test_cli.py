@@ -134,6 +134,10 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
      "train.mask_min_steps=-1 must be ≥ 0"),
     (["--config=configs/clevr.py:smoke", "--config.train.mask_min_release_steps=-5"],
      "train.mask_min_release_steps=-5 must be ≥ 0"),
+    (["--config=configs/clevr.py:smoke", "--config.train.lr_cooldown_steps=7"],
+     "train.lr_cooldown_steps=7 must lie in [0, train.num_steps=6]"),
+    (["--config=configs/clevr.py:smoke", "--config.train.lr_cooldown_final=1.5"],
+     "train.lr_cooldown_final=1.5 must lie in [0, 1]"),
     (["--config=configs/clevr.py:smoke", "--config.train.select_by=fg_ari"],
      "train.select_by must be one of ('nv_ari', 'min_fg_nv', 'psnr_novel'), got 'fg_ari'"),
 ])

@@ -113,3 +113,26 @@ def test_optimizer_matches_optax_with_each_group_schedule(name):
   c.optimizer = "sgd"
   with pytest.raises(ValueError, match="train.optimizer"):
     train_step.make_optimizer(c)
+
+
+@pytest.mark.parametrize("t, expected", [
+    (0, 1.0), (49_999, 1.0),  # full rate until the cooldown starts…
+    (50_000, 1.0),  # …and the cosine starts at 1: no jump
+    (52_500, 0.1 + 0.9 * (np.cos(np.pi / 4) + 1) / 2),
+    (55_000, 0.55),  # halfway: midway between 1 and the final 0.1
+    (60_000, 0.1), (65_000, 0.1)])  # the final factor at num_steps and beyond
+def test_cooldown_factor(t, expected):
+  factor = schedules.cooldown_factor(t, num_steps=60_000, cooldown_steps=10_000, final=0.1)
+  np.testing.assert_allclose(factor, expected, atol=1e-6)
+
+
+def test_cooldown_scales_both_rates():
+  c = defaults.base_config().train
+  c.num_steps, c.lr_cooldown_steps, c.lr_cooldown_final = 60_000, 10_000, 0.1
+  t = 55_000
+  backbone = 5e-5 * (0.02 + 0.98 * 0.5 ** (1.5 * t / 50_000))
+  head = 5e-5 * (0.02 + 0.98 * 0.5 ** (t / 50_000))
+  np.testing.assert_allclose(schedules.backbone_lr(t, c), 0.55 * backbone, rtol=1e-5)
+  np.testing.assert_allclose(schedules.head_lr(t, c), 0.55 * head, rtol=1e-5)
+  c.lr_cooldown_steps = 0  # off: the paper's rates
+  np.testing.assert_allclose(schedules.backbone_lr(t, c), backbone, rtol=1e-5)
