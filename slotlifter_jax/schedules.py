@@ -30,9 +30,7 @@ def cooldown_factor(t, *, num_steps: int, cooldown_steps: int, final: float):
   t = jnp.asarray(t, jnp.float32)
   if cooldown_steps <= 0:
     return jnp.ones_like(t)
-  start = num_steps - cooldown_steps
-  return final + (1.0 - final) * jnp.where(
-      t < start, 1.0, _cosine_to_zero(jnp.maximum(t - start, 0.0), cooldown_steps))
+  return final + (1.0 - final) * _cosine_after(t, num_steps - cooldown_steps, cooldown_steps)
 
 
 def _cooldown(t, c):
@@ -65,6 +63,13 @@ def _cosine_to_zero(t, steps: int):
   return jnp.where(t < steps, 0.5 * (jnp.cos(jnp.pi * t / steps) + 1.0), 0.0)
 
 
+def _cosine_after(t, start, steps: int):
+  """1 before step `start`, then cosine down to 0 over `steps` steps (at once when 0), then 0:
+  the floor's release and the learning-rate cooldown."""
+  t = jnp.asarray(t, jnp.float32)
+  return jnp.where(t < start, 1.0, _cosine_to_zero(jnp.maximum(t - start, 0.0), steps))
+
+
 def keep_ratio(t, *, mask_max: float, anneal_steps: int, mask_min: float = 0.0,
                mask_min_steps: int = 0, mask_min_release_steps: int = 0):
   """Fraction of rays that keep their lifted features (docs/method.md §1.3).
@@ -82,8 +87,7 @@ def keep_ratio(t, *, mask_max: float, anneal_steps: int, mask_min: float = 0.0,
   if mask_min_steps <= 0:
     floor = mask_min
   else:
-    released = _cosine_to_zero(jnp.maximum(t - mask_min_steps, 0.0), mask_min_release_steps)
-    floor = mask_min * jnp.where(t < mask_min_steps, 1.0, released)
+    floor = mask_min * _cosine_after(t, mask_min_steps, mask_min_release_steps)
   return 1.0 - floor - (mask_max - floor) * _cosine_to_zero(t, anneal_steps)
 
 
