@@ -377,6 +377,8 @@ def execute(run: Run, *, root: str = DEFAULT_ROOT, study: str = "", eval_split: 
     t0 = time.perf_counter()
     try:
       train.train_and_evaluate(config, run_dir)
+    except train.Interrupted as e:  # a signal: checkpointed, the study resumes from here
+      raise TrainingStopped(f"{run_dir}: {e}") from e
     finally:
       add_training_segment(run_dir, seconds=time.perf_counter() - t0, from_step=start,
                            to_step=latest_step(run_dir))
