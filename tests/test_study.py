@@ -123,6 +123,33 @@ def test_finished_run_is_skipped_and_trained_run_only_evaluated(smoke_run, monke
   assert len(_csv_rows(kwargs["csv_path"])) == 1
 
 
+def test_signal_during_training_stops_the_study_with_one_line(tmp_path, monkeypatch):
+  # Training stands in for a run a user stops with ^C at step 4: train.train_and_evaluate raises
+  # Interrupted after its checkpoint, as the real loop does (tests/test_train.py covers that part).
+  def interrupted_training(config, workdir):
+    os.makedirs(os.path.join(workdir, "checkpoints", "latest", "4"))
+    raise train.Interrupted(2, 4)
+
+  def no_eval(*a, **k):
+    raise AssertionError("evaluated a run whose training was interrupted")
+
+  monkeypatch.setattr(train, "train_and_evaluate", interrupted_training)
+  monkeypatch.setattr(evaluate, "evaluate_split", no_eval)
+  run = sc.Run(name="full", config=SMOKE, overrides={}, seed=0, num_steps=6)
+  root, csv_path = str(tmp_path / "runs"), str(tmp_path / "results" / "study.csv")
+  with pytest.raises(SystemExit) as stopped:
+    sc.run_study([run], study="ablations", root=root, eval_split="test", eval_scenes=1,
+                 csv_path=csv_path, dry_run=False, from_csv_only=False)
+  message = str(stopped.value.code)
+  run_dir = os.path.join(root, sc.run_id(run))
+  assert message.startswith(f"[ablations] {run_dir}: interrupted by signal 2 at step 4")
+  assert "\n" not in message and "run the same command again" in message
+  # The interrupted segment is on the clock, and nothing claims the run finished.
+  timing = sc.read_timing(run_dir)
+  assert [(s["from_step"], s["to_step"]) for s in timing["segments"]] == [(0, 4)]
+  assert not os.path.exists(sc.result_path(run_dir, "test", 1)) and not os.path.exists(csv_path)
+
+
 # ---------------------------------------------------------------------------------------------
 # Configs and bad input (no training).
 
