@@ -42,6 +42,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
 from experiments import study_common as sc  # noqa: E402  (no JAX import)
+from experiments import study_tables as st  # noqa: E402
 
 BASE = "configs/room_chair.py:quick"
 NUM_STEPS = 600  # per run: the 12 runs took 63 min on the 2-core CPU (experiments/README.md)
@@ -66,7 +67,7 @@ def plan(*, config: str = BASE, num_steps: int = NUM_STEPS, seeds=(0, 1, 2),
 
 
 def table(rows: list[dict], *, config: str = BASE) -> str:
-  groups = sc.aggregate(rows, metrics=[c[0] for c in COLUMNS], order=list(VARIANTS))
+  groups = st.aggregate(rows, metrics=[c[0] for c in COLUMNS], order=list(VARIANTS))
   steps = sorted({int(r["num_steps"]) for r in rows})
   scenes = sorted({int(r["eval_scenes"]) for r in rows})
   split = sorted({str(r["eval_split"]) for r in rows})
@@ -75,7 +76,7 @@ def table(rows: list[dict], *, config: str = BASE) -> str:
           f"Mean ± sample std over seeds; ARIs ×100; collapse = runs whose last validation flags "
           f"collapse / runs. Written by experiments/ablations.py on "
           f"{time.strftime('%Y-%m-%d %H:%M')}.\n\n")
-  return head + sc.markdown_table(groups, columns=COLUMNS) + "\n"
+  return head + st.markdown_table(groups, columns=COLUMNS) + "\n"
 
 
 def parse_args(argv=None):
@@ -108,7 +109,7 @@ def main(argv=None) -> None:
   if rows is None:
     return
   text = table(rows, config=args.config)
-  sc.write_text(md_path, text)
+  st.write_text(md_path, text)
   print(text)
   print(f"[ablations] wrote {csv_path} and {md_path}")
 

@@ -41,6 +41,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
 from experiments import study_common as sc  # noqa: E402  (no JAX import)
+from experiments import study_tables as st  # noqa: E402
 
 BASE = "configs/clevr.py:quick"
 NUM_STEPS = 600  # per run: the seven points in about 45 min (experiments/README.md)
@@ -77,7 +78,7 @@ def plot(rows: list[dict], out: str) -> None:
       ax = axes[i][j]
       xs = [float(r.get(cost, math.nan)) for r in rows]
       ys = [float(r.get(metric, math.nan)) for r in rows]
-      front = sc.pareto_front(xs, ys)
+      front = st.pareto_front(xs, ys)
       ax.scatter(xs, ys, s=25, c="tab:gray", label="run")
       if front:
         fx, fy = [xs[k] for k in front], [ys[k] for k in front]
@@ -110,7 +111,7 @@ def table(rows: list[dict]) -> str:
   marks = {}
   for metric, _ in METRICS:
     for cost, tag in (("train_s", "*"), ("render_per_view_s", "R")):
-      front = sc.pareto_front([float(r.get(cost, math.nan)) for r in rows],
+      front = st.pareto_front([float(r.get(cost, math.nan)) for r in rows],
                               [float(r.get(metric, math.nan)) for r in rows])
       for k in front:
         marks.setdefault((k, metric), set()).add(tag)
@@ -125,7 +126,7 @@ def table(rows: list[dict]) -> str:
           "FG-ARI", "NV-ARI", "active slots", "collapsed"]
   lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
   for k, r in enumerate(rows):
-    cell = lambda key, digits: sc.format_value(r.get(key, math.nan), digits=digits)
+    cell = lambda key, digits: st.format_value(r.get(key, math.nan), digits=digits)
     mark = lambda m: "".join(sorted(marks.get((k, m), ())))
     overrides = r.get("overrides", {})
     if isinstance(overrides, str):  # as the CSV holds it
@@ -170,7 +171,7 @@ def main(argv=None) -> None:
     return
   plot(rows, png_path)
   text = table(rows)
-  sc.write_text(md_path, text)
+  st.write_text(md_path, text)
   print(text)
   print(f"[pareto] wrote {csv_path}, {md_path} and {png_path}")
 

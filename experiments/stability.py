@@ -34,6 +34,7 @@ sys.path.insert(0, REPO)
 
 from experiments import ablations  # noqa: E402  (the shared defaults; no JAX import)
 from experiments import study_common as sc  # noqa: E402
+from experiments import study_tables as st  # noqa: E402
 
 COLUMNS = ablations.COLUMNS + (("active_slots", "active slots", 1.0, 2),)
 
@@ -46,7 +47,7 @@ def plan(*, config: str = ablations.BASE, num_steps: int = ablations.NUM_STEPS,
 
 
 def table(rows: list[dict], *, config: str = ablations.BASE) -> str:
-  groups = sc.aggregate(rows, metrics=[c[0] for c in COLUMNS])
+  groups = st.aggregate(rows, metrics=[c[0] for c in COLUMNS])
   steps = sorted({int(r["num_steps"]) for r in rows})
   scenes = sorted({int(r["eval_scenes"]) for r in rows})
   out = [f"# Seed stability ({config}, {'/'.join(map(str, steps))} steps, "
@@ -54,14 +55,14 @@ def table(rows: list[dict], *, config: str = ablations.BASE) -> str:
          f"Mean ± sample std [min, max] over seeds; ARIs ×100; collapse = runs whose last "
          f"validation flags collapse / runs. Written by experiments/stability.py on "
          f"{time.strftime('%Y-%m-%d %H:%M')}.\n",
-         sc.markdown_table(groups, columns=COLUMNS, extremes=True), "",
+         st.markdown_table(groups, columns=COLUMNS, extremes=True), "",
          "Per seed:\n"]
   head = ["seed"] + [h for _, h, _, _ in COLUMNS] + ["collapsed", "train s", "run"]
   out.append("| " + " | ".join(head) + " |")
   out.append("|" + "---|" * len(head))
   for r in sorted(rows, key=lambda r: int(r["seed"])):
     cells = [str(r["seed"])]
-    cells += [sc.format_value(r.get(m, math.nan), digits=digits, scale=scale)
+    cells += [st.format_value(r.get(m, math.nan), digits=digits, scale=scale)
               for m, _, scale, digits in COLUMNS]
     flag = r.get("collapsed", math.nan)
     cells.append("–" if flag in ("", None) or math.isnan(float(flag)) else
@@ -96,7 +97,7 @@ def main(argv=None) -> None:
   if rows is None:
     return
   text = table(rows, config=args.config)
-  sc.write_text(md_path, text)
+  st.write_text(md_path, text)
   print(text)
   print(f"[stability] wrote {csv_path} and {md_path}")
 

@@ -1,4 +1,5 @@
-"""The study runner of issue #6 (experiments/study_common.py) and the scripts' pure summaries.
+"""The study runner of issue #6 (experiments/study_common.py) and the scripts' pure summaries
+(experiments/study_tables.py).
 
 One smoke training (configs/clevr.py:smoke, 6 steps) is shared by the runner tests through a
 module-scoped fixture; everything else is pure Python on small inputs.
@@ -23,6 +24,7 @@ from experiments import diagnose_slots  # noqa: E402
 from experiments import pareto  # noqa: E402
 from experiments import stability  # noqa: E402
 from experiments import study_common as sc  # noqa: E402
+from experiments import study_tables as st  # noqa: E402
 from slotlifter_jax import evaluate  # noqa: E402
 from slotlifter_jax import schedules  # noqa: E402
 from slotlifter_jax import train  # noqa: E402
@@ -261,11 +263,11 @@ def test_pareto_front_matches_brute_force():
       costs, values = rng.uniform(0, 1, n), rng.uniform(0, 1, n)
     if n and trial % 5 == 0:
       values[rng.integers(n)] = math.nan
-    got = sc.pareto_front(list(costs), list(values))
+    got = st.pareto_front(list(costs), list(values))
     want = _front_brute_force(list(costs), list(values))
     assert sorted(got) == sorted(want), (costs, values)
     assert [costs[i] for i in got] == sorted(costs[i] for i in got)  # ordered by cost
-  assert sc.pareto_front([3.0, 1.0, 2.0], [1.0, 0.5, 2.0]) == [1, 2]
+  assert st.pareto_front([3.0, 1.0, 2.0], [1.0, 0.5, 2.0]) == [1, 2]
 
 
 def test_ablation_aggregation_against_a_hand_computed_example():
@@ -277,25 +279,25 @@ def test_ablation_aggregation_against_a_hand_computed_example():
       dict(name="no_masking", psnr_novel=18.0, fg_ari=0.10, collapsed=1.0),
       dict(name="no_masking", psnr_novel=19.0, fg_ari=0.30, collapsed=""),  # flag unknown
   ]
-  groups = sc.aggregate(rows, metrics=["psnr_novel", "fg_ari"], order=["no_masking", "full"])
+  groups = st.aggregate(rows, metrics=["psnr_novel", "fg_ari"], order=["no_masking", "full"])
   assert [g["name"] for g in groups] == ["no_masking", "full"]
   nm, full = groups
   # full: PSNR 20, 22, 24 → mean 22, sample std 2; FG-ARI NaN skipped → 0.6 ± 0.1414 (n = 2).
-  assert full["psnr_novel"] == sc.Stat(3, 22.0, 2.0, 20.0, 24.0)
+  assert full["psnr_novel"] == st.Stat(3, 22.0, 2.0, 20.0, 24.0)
   assert full["fg_ari"].n == 2 and full["fg_ari"].mean == pytest.approx(0.6)
   assert full["fg_ari"].std == pytest.approx(math.sqrt(0.02))
   assert full["collapse_rate"] == pytest.approx(1 / 3) and full["collapsed_runs"] == 1
   assert nm["collapse_rate"] == 1.0 and (nm["collapsed_runs"], nm["flagged_runs"]) == (1, 1)
   assert nm["psnr_novel"].mean == 18.5 and nm["psnr_novel"].std == pytest.approx(0.70710678)
-  table = sc.markdown_table(groups, columns=[("psnr_novel", "PSNR", 1.0, 2),
+  table = st.markdown_table(groups, columns=[("psnr_novel", "PSNR", 1.0, 2),
                                              ("fg_ari", "FG-ARI", 100.0, 1)])
   lines = table.splitlines()
   assert lines[0] == "| name | runs | PSNR | FG-ARI | collapse rate |"
   assert lines[2] == "| no_masking | 2 | 18.50 ± 0.71 | 20.0 ± 14.1 | 1/1 (100%) |"
   assert lines[3] == "| full | 3 | 22.00 ± 2.00 | 60.0 ± 14.1 | 1/3 (33%) |"
-  assert sc.format_stat(sc.stat([5.0]), digits=1) == "5.0"  # one run: no spread
-  assert sc.format_stat(sc.stat([nan]), digits=1) == "–"
-  assert sc.format_stat(full["psnr_novel"], digits=0, extremes=True) == "22 ± 2 [20, 24]"
+  assert st.format_stat(st.stat([5.0]), digits=1) == "5.0"  # one run: no spread
+  assert st.format_stat(st.stat([nan]), digits=1) == "–"
+  assert st.format_stat(full["psnr_novel"], digits=0, extremes=True) == "22 ± 2 [20, 24]"
 
 
 def test_study_tables_and_figure_from_rows(tmp_path):
