@@ -3,6 +3,8 @@
   python experiments/stability.py --dry_run     # the plan and its estimated time, nothing run
   python experiments/stability.py               # train + evaluate, then write the table
   python experiments/stability.py --config=configs/clevr.py:quick --seeds=5
+  python experiments/stability.py --config=configs/clevr.py:fast --eval_scenes=100 \
+      --workdirs=runs/fast_s0,runs/fast_s1,...   # seeds trained with slotlifter_jax.main
 
 Trains --config (default configs/room_chair.py:quick, the base of ablations.py) with seeds
 0..N-1 (default 5) for --num_steps steps each (schedules scaled to the budget, study_common.py),
@@ -19,6 +21,11 @@ Time: 11 min measured for seeds 3 and 4 after ablations.py (5 × 600 steps, 20 s
 about 27 min, estimated from those runs), on the 2-core CPU on 2026-11-22; --dry_run prints an
 estimate.
 A finished run is skipped, so running the script again resumes where it stopped.
+
+With --workdirs the script trains nothing: it summarises finished runs of --config, one per seed,
+that were trained with `python -m slotlifter_jax.main --config=... --config.seed=N --workdir=DIR`.
+Each must match --config in every field that changes training and have trained its full budget;
+its evaluation is reused or written (experiments/study_workdirs.py says what is checked).
 """
 
 from __future__ import annotations
@@ -35,6 +42,7 @@ sys.path.insert(0, REPO)
 from experiments import ablations  # noqa: E402  (the shared defaults; no JAX import)
 from experiments import study_common as sc  # noqa: E402
 from experiments import study_tables as st  # noqa: E402
+from experiments import study_workdirs as sw  # noqa: E402
 
 COLUMNS = ablations.COLUMNS + (("active_slots", "active slots", 1.0, 2),)
 
@@ -83,11 +91,16 @@ def parse_args(argv=None):
   p.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1")
   p.add_argument("--dry_run", action="store_true", help="print the plan and estimate; run nothing")
   p.add_argument("--table_only", action="store_true", help="rewrite the table from the CSV")
+  p.add_argument("--workdirs", default="",
+                 help="comma-separated finished runs of --config trained with slotlifter_jax.main "
+                      "(one per seed): summarise them instead of training --seeds runs")
   return p.parse_args(argv)
 
 
 def main(argv=None) -> None:
   args = parse_args(argv)
+  if args.workdirs:
+    return main_workdirs(args)
   runs = plan(config=args.config, num_steps=args.num_steps, seeds=range(args.seeds))
   csv_path = os.path.join(args.results_dir, "stability.csv")
   md_path = os.path.join(args.results_dir, "stability.md")
@@ -96,6 +109,33 @@ def main(argv=None) -> None:
                       from_csv_only=args.table_only)
   if rows is None:
     return
+  text = table(rows, config=args.config)
+  st.write_text(md_path, text)
+  print(text)
+  print(f"[stability] wrote {csv_path} and {md_path}")
+
+
+def main_workdirs(args) -> None:
+  """--workdirs: the same table for runs trained with the entry point."""
+  dirs = [d for d in args.workdirs.split(",") if d]
+  csv_path = os.path.join(args.results_dir, "stability.csv")
+  md_path = os.path.join(args.results_dir, "stability.md")
+  try:
+    if args.dry_run:
+      for d in dirs:
+        config = sw.check_workdir(d, args.config)
+        print(f"  seed {config.seed}  {d}  trained {config.train.num_steps} steps")
+      print(f"{len(dirs)} finished runs; only their evaluations (if missing) would run")
+      return
+    if args.table_only:
+      ids = {sw.workdir_id(d) for d in dirs}
+      rows = [r for r in sc.read_csv(csv_path) if r.get("run_id") in ids]
+    else:
+      rows = sw.workdir_rows(dirs, config_spec=args.config, study="stability", name="full",
+                             eval_split=args.eval_split, eval_scenes=args.eval_scenes)
+      sc.upsert_csv(csv_path, rows)
+  except (sc.StudyError, FileNotFoundError) as e:
+    raise SystemExit(f"[stability] {e}")
   text = table(rows, config=args.config)
   st.write_text(md_path, text)
   print(text)

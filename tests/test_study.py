@@ -376,3 +376,91 @@ def test_diagnose_slots_runs_on_a_trained_run(smoke_run, capsys):
   out = capsys.readouterr().out
   assert "step 6, 1 test scenes, K = 4" in out and "2D FG-ARI" in out and "key cosine" in out
   assert "cell ceiling (8×8 cells)" in out and "colour k-means (4 clusters)" in out
+
+
+# ---------------------------------------------------------------------------------------------
+# stability.py --workdirs: seeds trained with the entry point (experiments/study_workdirs.py).
+
+
+def _finished_run(path, *, seed, fg_ari, psnr, step=6, collapsed=0.0, scenes=2, **changes):
+  """A run directory as `slotlifter_jax.main` leaves it after the smoke budget, with evaluation
+  numbers chosen by hand (no training: the checks and the row read only these files)."""
+  from slotlifter_jax import checkpoints
+  from slotlifter_jax.data import embedded
+  config = sc.load_config(SMOKE)
+  config.seed = seed
+  for key, value in changes.items():
+    section, field = key.split("__")
+    config[section][field] = value
+  checkpoints.save_config(embedded.resolve_data(config), str(path))
+  os.makedirs(path / "checkpoints" / "latest" / str(step))
+  log = [{"step": 2, "kind": "train", "steps_per_sec": 4.0, "wall_s": 1.0},
+         {"step": 4, "kind": "train", "steps_per_sec": 2.0, "wall_s": 2.0},
+         {"step": 6, "kind": "train", "steps_per_sec": 5.0, "wall_s": 2.5},
+         {"step": 6, "kind": "val", "collapsed": collapsed, "probe_active_slots": 3.0,
+          "probe_largest_share": 0.5, "wall_s": 3.0}]
+  (path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in log))
+  metrics = {"psnr_novel": psnr, "fg_ari": fg_ari, "ari": 0.9, "nv_ari": 0.8}
+  evaluation = {"split": "test", "num_scenes": scenes, "checkpoint": {"step": step},
+                "metrics": {k: {"mean": v} for k, v in metrics.items()},
+                "timing": {"render_per_view_s": 0.05, "total_s": 7.0}}
+  os.makedirs(path / "eval" / "test")
+  (path / "eval" / "test" / "metrics.json").write_text(json.dumps(evaluation))
+  return path
+
+
+def test_workdir_rows_read_the_runs_and_refuse_what_is_not_one_config(tmp_path):
+  from experiments import study_workdirs as sw
+  a = _finished_run(tmp_path / "a", seed=0, fg_ari=0.6, psnr=20.0)
+  # Another validation cadence and best-checkpoint rule do not change the trained parameters.
+  b = _finished_run(tmp_path / "b", seed=3, fg_ari=0.8, psnr=22.0, collapsed=1.0,
+                    train__eval_every=2, train__select_by="nv_ari")
+  kwargs = dict(config_spec=SMOKE, study="stability", name="full", eval_split="test",
+                eval_scenes=2)
+  row_a, row_b = sw.workdir_rows([str(a), str(b)], **kwargs)
+  assert (row_a["seed"], row_b["seed"]) == (0, 3) and row_a["num_steps"] == 6
+  assert row_a["fg_ari"] == 0.6 and row_b["psnr_novel"] == 22.0 and math.isnan(row_a["ssim"])
+  assert row_a["train_s"] == 3.0 and row_a["step_s"] == pytest.approx(1 / 4.0)  # median rate
+  assert (row_a["collapsed"], row_b["collapsed"]) == (0.0, 1.0)  # step 6 ≥ smoke's settled step
+  assert row_a["checkpoint_step"] == 6 and row_a["eval_scenes"] == 2
+  assert row_a["run_id"] != row_b["run_id"] and row_a["run_id"].startswith("a-")
+
+  def refused(match, dirs, **kw):
+    with pytest.raises(sc.StudyError, match=match):
+      sw.workdir_rows([str(d) for d in dirs], **dict(kwargs, **kw))
+
+  refused(r"/c: trained with model.num_slots=3, but configs/clevr.py:smoke has",
+          [a, _finished_run(tmp_path / "c", seed=1, fg_ari=0.5, psnr=20.0, model__num_slots=3)])
+  refused(r"/d: last checkpoint is step 4, not the budget 6",
+          [_finished_run(tmp_path / "d", seed=1, fg_ari=0.5, psnr=20.0, step=4)])
+  refused(r"/a and .*/e are both seed 0",
+          [a, _finished_run(tmp_path / "e", seed=0, fg_ari=0.5, psnr=20.0)])
+  refused(r"/f: no config.json", [os.makedirs(tmp_path / "f") or tmp_path / "f"])
+  # An evaluation of other scenes is refused, not overwritten.
+  before = (a / "eval" / "test" / "metrics.json").read_text()
+  refused(r"a/eval/test/metrics.json: evaluates step 6 on 2 scenes, not .* 6 on 3", [a],
+          eval_scenes=3)
+  assert (a / "eval" / "test" / "metrics.json").read_text() == before
+
+
+def test_stability_cli_summarises_workdirs(tmp_path):
+  import subprocess
+  dirs = [_finished_run(tmp_path / f"seed{s}", seed=s, fg_ari=fg, psnr=p)
+          for s, fg, p in ((0, 0.6, 20.0), (1, 0.8, 24.0))]
+  results = tmp_path / "results"
+  args = [sys.executable, "experiments/stability.py", f"--config={SMOKE}", "--eval_scenes=2",
+          f"--results_dir={results}", "--workdirs=" + ",".join(map(str, dirs))]
+  proc = subprocess.run(args, cwd=REPO, capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 0, proc.stderr[-2000:]
+  table = (results / "stability.md").read_text()
+  # FG-ARI ×100: mean 70, sample std √((10² + 10²) / 1) = 14.1; PSNR 22 ± 2.83.
+  assert "| full | 2 | 22.00 ± 2.83 [20.00, 24.00] |" in table
+  assert "70.0 ± 14.1 [60.0, 80.0]" in table and "0/2 (0%)" in table
+  assert len(_csv_rows(results / "stability.csv")) == 2
+  # A run of another config: one line naming it, exit status 1, the table left as it was.
+  bad = _finished_run(tmp_path / "bad", seed=2, fg_ari=0.1, psnr=10.0, render__num_samples=4)
+  proc = subprocess.run(args[:-1] + [f"--workdirs={dirs[0]},{bad}"], cwd=REPO,
+                        capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 1 and (results / "stability.md").read_text() == table
+  assert proc.stderr.strip().splitlines()[-1].startswith(f"[stability] {bad}: trained with "
+                                                         f"render.num_samples=4")

@@ -1,0 +1,149 @@
+"""Study rows for runs trained outside the study runner, with `python -m slotlifter_jax.main`.
+
+A user who trained seeds of one config with the entry point (one `--workdir` per seed) should not
+have to train them again to get the seed-stability table; `stability.py --workdirs=A,B,...` reads
+them through `workdir_row`. What the runner guarantees by construction (one config, one budget,
+one evaluation protocol) is checked here instead, and a run that fails a check stops the study
+with one line naming its directory and the problem:
+  - its DIR/config.json equals the named config (`configs/<file>.py[:variant]`) except for the
+    seed and the fields that cannot change the trained parameters (NOT_TRAINING: how often it
+    validated, logged or checkpointed, and how it picked its best checkpoint); a field the saved
+    config lacks was added to the code later and reads as its default, as on resume;
+  - its last checkpoint is the config's full budget (`train.num_steps`);
+  - its evaluation is of that checkpoint on the requested number of scenes: an existing
+    DIR/eval/<split>/metrics.json is reused when it is, refused (never overwritten) when it is
+    not, and written by `evaluate_split` when there is none.
+The row has the runner's columns (study_common.CSV_COLUMNS). `train_s` is the run's own clock
+(`wall_s` of its last log record: seconds of training summed over resumed invocations, with its
+validations); `train_segments` is unknown and left empty.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from typing import Optional
+
+from experiments import study_common as sc
+
+# Fields that decide when the loop looks at the model, never what it trains.
+NOT_TRAINING = ("seed", "train.eval_every", "train.eval_scenes", "train.log_every",
+                "train.checkpoint_every", "train.select_by")
+
+
+def _flat(tree: dict, prefix: str = "") -> dict:
+  out = {}
+  for k, v in tree.items():
+    if isinstance(v, dict):
+      out.update(_flat(v, f"{prefix}{k}."))
+    else:
+      out[prefix + k] = v
+  return out
+
+
+def training_differences(saved: dict, config) -> dict:
+  """{field: [saved, named]} for the fields, other than NOT_TRAINING, in which the run's saved
+  config differs from `config`; a field the saved config lacks reads as base_config's value."""
+  from slotlifter_jax import defaults
+  named = _flat(json.loads(config.to_json_best_effort()))
+  base = _flat(json.loads(defaults.base_config().to_json_best_effort()))
+  saved = _flat(saved)
+  out = {}
+  for field in sorted(set(named) | set(saved)):
+    if field in NOT_TRAINING:
+      continue
+    a = saved.get(field, base.get(field))
+    b = named.get(field, base.get(field))
+    if json.dumps(a) != json.dumps(b):
+      out[field] = [a, b]
+  return out
+
+
+def workdir_id(run_dir: str) -> str:
+  """The row's key: the directory's name and a hash of its absolute path (two runs named
+  `seed0` in different folders stay two rows)."""
+  path = os.path.abspath(run_dir)
+  return f"{os.path.basename(path)}-{hashlib.sha1(path.encode()).hexdigest()[:6]}"
+
+
+def check_workdir(run_dir: str, config_spec: str):
+  """The run's config (the named one with its seed and resolved data), after the checks of the
+  module docstring that need no evaluation; raises StudyError naming the problem."""
+  from slotlifter_jax import checkpoints
+  from slotlifter_jax.data import embedded
+  if not os.path.isdir(run_dir):
+    raise sc.StudyError(f"--workdirs: {run_dir} is not a directory")
+  saved = checkpoints.load_saved_config(run_dir)
+  if saved is None:
+    raise sc.StudyError(f"{run_dir}: no config.json; not a training run directory")
+  config = sc.load_config(config_spec)
+  config.seed = int(saved.get("seed", 0))
+  config = embedded.resolve_data(config)  # the embedded set's path, as the run saved it
+  diffs = training_differences(saved, config)
+  if diffs:
+    field, (a, b) = next(iter(diffs.items()))
+    more = f" (and {len(diffs) - 1} more)" if len(diffs) > 1 else ""
+    raise sc.StudyError(f"{run_dir}: trained with {field}={a!r}, but {config_spec} has {b!r}"
+                        f"{more}; only {', '.join(NOT_TRAINING)} may differ")
+  step = sc.latest_step(run_dir)
+  if step != int(config.train.num_steps):
+    raise sc.StudyError(f"{run_dir}: last checkpoint is step {step}, not the budget "
+                        f"{config.train.num_steps}; finish training with the same command first")
+  return config
+
+
+def _evaluation(config, run_dir: str, *, split: str, eval_scenes: Optional[int],
+                progress: bool) -> dict:
+  from slotlifter_jax import evaluate
+  path = os.path.join(run_dir, "eval", split, "metrics.json")
+  step = sc.latest_step(run_dir)
+  if not os.path.exists(path):
+    evaluate.evaluate_split(config, run_dir, split=split, checkpoint="latest",
+                            max_scenes=eval_scenes, progress=progress)
+  with open(path) as f:
+    result = json.load(f)
+  want = eval_scenes or result["num_scenes"]
+  got = (int(result["checkpoint"]["step"]), int(result["num_scenes"]))
+  if got != (step, want):
+    raise sc.StudyError(f"{path}: evaluates step {got[0]} on {got[1]} scenes, not the last "
+                        f"checkpoint {step} on {want}; move it aside to evaluate again")
+  return result
+
+
+def workdir_row(run_dir: str, *, config_spec: str, study: str, name: str, eval_split: str,
+                eval_scenes: Optional[int], progress: bool = True) -> dict:
+  """One study row (study_common.CSV_COLUMNS) for a finished run trained by the entry point."""
+  from slotlifter_jax import train
+  config = check_workdir(run_dir, config_spec)
+  result = _evaluation(config, run_dir, split=eval_split, eval_scenes=eval_scenes,
+                       progress=progress)
+  train_records, val_records = sc.read_log(run_dir)
+  clock = [float(r["wall_s"]) for r in train_records + val_records if "wall_s" in r]
+  row = dict(
+      study=study, name=name, config=config_spec, overrides={}, seed=int(config.seed),
+      num_steps=int(config.train.num_steps), run_id=workdir_id(run_dir),
+      run_dir=os.path.abspath(run_dir), train_s=max(clock, default=math.nan),
+      train_segments=math.nan, step_s=sc.median_step_seconds(train_records),
+      eval_split=eval_split, eval_scenes=int(result["num_scenes"]),
+      checkpoint_step=int(result["checkpoint"]["step"]),
+      render_per_view_s=float(result["timing"]["render_per_view_s"]),
+      eval_s=float(result["timing"]["total_s"]))
+  for k in sc.METRIC_KEYS:
+    value = result["metrics"].get(k, {}).get("mean")
+    row[k] = math.nan if value is None else float(value)
+  row.update(sc.collapse_record(val_records, train.collapse_settled_step(config.train)))
+  return row
+
+
+def workdir_rows(run_dirs, **kwargs) -> list[dict]:
+  """`workdir_row` for each directory; every directory is checked before any is evaluated, and
+  two runs with one seed are refused (they would count one seed twice)."""
+  specs = {}
+  for d in run_dirs:
+    config = check_workdir(d, kwargs["config_spec"])
+    if config.seed in specs:
+      raise sc.StudyError(f"--workdirs: {specs[config.seed]} and {d} are both seed {config.seed}")
+    specs[config.seed] = d
+  return [workdir_row(d, **kwargs) for d in run_dirs]
