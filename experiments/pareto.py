@@ -3,6 +3,7 @@
   python experiments/pareto.py --dry_run        # the plan and its estimated time, nothing run
   python experiments/pareto.py                  # train + evaluate every point, then plot
   python experiments/pareto.py --plot_only      # redraw from experiments/results/pareto.csv
+  python experiments/pareto.py --grid=fast --eval_scenes=100   # around `fast`, 60 000 steps
 
 Base: configs/clevr.py:quick on the embedded clevr set (64², 32 samples, 2 scenes × 256 rays, the
 narrow ResNet-18-style encoder). Each point changes one axis of the base, plus one cheap corner,
@@ -19,6 +20,13 @@ seconds, render seconds per view, PSNR, ARI, FG-ARI, NV-ARI, NV-FG-ARI, active s
 collapse flag; the figure plots novel-view PSNR and FG-ARI against training time and against render
 time per view, with the Pareto front (lower time, higher metric) as a step line and larger markers.
 Note that PSNR and ARI at 32² are measured at 32², so they are not the same task as at 64².
+
+`--grid=fast` draws the same chart around configs/clevr.py:fast at its own budget (60 000 steps,
+the schedules unscaled), where the model decomposes, so the FG-ARI axis measures decomposition
+rather than noise (FAST_POINTS: samples per ray 8 / 32 against 16, rays per scene 64 / 256
+against 128, slot width 64, 4 allocation blocks). Its files are pareto_fast.csv/.md/.png. Its
+`base` run is the same run directory as `ablations.py --config=configs/clevr.py:fast`'s `full`
+(study_common.run_id), so the two studies share it. About 50 min per point alone on this CPU.
 
 Time: 45 min measured on the 2-core CPU for the defaults (600 steps, 20 scenes; 19:17–20:11 on
 2026-11-22, experiments/README.md); --dry_run prints an estimate from the cost model in
@@ -56,6 +64,19 @@ POINTS = {
     "wide_encoder": WIDE_ENCODER,
     "cheap": {"data.image_size": 32, "render.num_samples": 16},
 }
+# One axis of `fast` at a time, each side of its value: what the scene-sized model's cuts cost.
+FAST_POINTS = {
+    "base": {},
+    "samples8": {"render.num_samples": 8},
+    "samples32": {"render.num_samples": 32},
+    "rays64": {"train.rays_per_scene": 64},
+    "rays256": {"train.rays_per_scene": 256},
+    "slots64": {"model.slot_dim": 64, "model.slot_mlp_dim": 128},
+    "blocks4": {"model.num_blocks": 4},
+}
+# --grid: (base config, points, budget, file stem).
+GRIDS = {"quick": (BASE, POINTS, NUM_STEPS, "pareto"),
+         "fast": ("configs/clevr.py:fast", FAST_POINTS, 60_000, "pareto_fast")}
 # (CSV column, axis label) of the figure's rows and columns.
 METRICS = (("psnr_novel", "novel-view PSNR (dB)"), ("fg_ari", "FG-ARI"))
 COSTS = (("train_s", "training wall-clock (s)"), ("render_per_view_s", "render time per view (s)"))
@@ -67,7 +88,7 @@ def plan(*, config: str = BASE, num_steps: int = NUM_STEPS, seed: int = 0,
           for name, overrides in points.items()]
 
 
-def plot(rows: list[dict], out: str) -> None:
+def plot(rows: list[dict], out: str, *, base: str = BASE) -> None:
   """2×2: METRICS (rows) against COSTS (columns); the Pareto front as a step line."""
   import matplotlib
   matplotlib.use("Agg")
@@ -96,7 +117,7 @@ def plot(rows: list[dict], out: str) -> None:
       if i == 0 and j == 0:
         ax.legend(fontsize=8)
   steps = sorted({int(r["num_steps"]) for r in rows})
-  fig.suptitle(f"speed vs accuracy, {BASE} variations, {'/'.join(map(str, steps))} steps, "
+  fig.suptitle(f"speed vs accuracy, {base} variations, {'/'.join(map(str, steps))} steps, "
                f"{rows[0]['eval_scenes'] if rows else '?'} {rows[0]['eval_split'] if rows else ''} "
                f"scenes", fontsize=10)
   fig.tight_layout()
@@ -105,7 +126,7 @@ def plot(rows: list[dict], out: str) -> None:
   plt.close(fig)
 
 
-def table(rows: list[dict]) -> str:
+def table(rows: list[dict], *, base: str = BASE) -> str:
   """pareto.md: one row per point; '*' marks the points on the PSNR / FG-ARI fronts over
   training time (the figure's left column), `R` those over render time (its right column)."""
   marks = {}
@@ -116,7 +137,7 @@ def table(rows: list[dict]) -> str:
       for k in front:
         marks.setdefault((k, metric), set()).add(tag)
   steps = sorted({int(r["num_steps"]) for r in rows})
-  head = (f"# Speed vs accuracy ({BASE} variations, {'/'.join(map(str, steps))} steps, "
+  head = (f"# Speed vs accuracy ({base} variations, {'/'.join(map(str, steps))} steps, "
           f"{rows[0]['eval_scenes'] if rows else '?'} {rows[0]['eval_split'] if rows else ''} "
           f"scenes per run)\n\n"
           f"Training time includes compilation and in-training validation; render time is one full "
@@ -144,11 +165,14 @@ def parse_args(argv=None):
   p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   p.add_argument("--root", default=sc.DEFAULT_ROOT, help="where the run directories go")
   p.add_argument("--results_dir", default=sc.RESULTS_DIR, help="where pareto.csv/.md/.png go")
-  p.add_argument("--num_steps", type=int, default=NUM_STEPS, help="training budget per run")
+  p.add_argument("--grid", default="quick", choices=sorted(GRIDS),
+                 help="quick: variations of configs/clevr.py:quick; fast: of configs/clevr.py:fast")
+  p.add_argument("--num_steps", type=int, default=None,
+                 help=f"training budget per run (default: the grid's, {NUM_STEPS} for quick)")
   p.add_argument("--eval_scenes", type=int, default=20, help="test scenes evaluated per run")
   p.add_argument("--eval_split", default="test")
   p.add_argument("--seed", type=int, default=0)
-  p.add_argument("--points", default=",".join(POINTS), help=f"subset of {list(POINTS)}")
+  p.add_argument("--points", default="", help="a subset of the grid's points (default: all)")
   p.add_argument("--dry_run", action="store_true", help="print the plan and estimate; run nothing")
   p.add_argument("--plot_only", action="store_true", help="redraw from the CSV; run nothing")
   return p.parse_args(argv)
@@ -156,21 +180,24 @@ def parse_args(argv=None):
 
 def main(argv=None) -> None:
   args = parse_args(argv)
-  unknown = [n for n in args.points.split(",") if n not in POINTS]
+  base, grid_points, budget, stem = GRIDS[args.grid]
+  names = args.points.split(",") if args.points else list(grid_points)
+  unknown = [n for n in names if n not in grid_points]
   if unknown:
-    raise SystemExit(f"unknown points {unknown}; choose from {list(POINTS)}")
-  points = {n: POINTS[n] for n in args.points.split(",")}
-  runs = plan(num_steps=args.num_steps, seed=args.seed, points=points)
-  csv_path = os.path.join(args.results_dir, "pareto.csv")
-  png_path = os.path.join(args.results_dir, "pareto.png")
-  md_path = os.path.join(args.results_dir, "pareto.md")
+    raise SystemExit(f"--points: unknown points {unknown} for --grid={args.grid}; choose from "
+                     f"{list(grid_points)}")
+  points = {n: grid_points[n] for n in names}
+  runs = plan(config=base, num_steps=args.num_steps or budget, seed=args.seed, points=points)
+  csv_path = os.path.join(args.results_dir, f"{stem}.csv")
+  png_path = os.path.join(args.results_dir, f"{stem}.png")
+  md_path = os.path.join(args.results_dir, f"{stem}.md")
   rows = sc.run_study(runs, study="pareto", root=args.root, eval_split=args.eval_split,
                       eval_scenes=args.eval_scenes, csv_path=csv_path, dry_run=args.dry_run,
                       from_csv_only=args.plot_only)
   if rows is None:
     return
-  plot(rows, png_path)
-  text = table(rows)
+  plot(rows, png_path, base=base)
+  text = table(rows, base=base)
   st.write_text(md_path, text)
   print(text)
   print(f"[pareto] wrote {csv_path}, {md_path} and {png_path}")

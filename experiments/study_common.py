@@ -438,8 +438,9 @@ def estimate_seconds(run: Run, *, steps_done: int = 0, eval_scenes: Optional[int
 
 
 def print_plan(runs: Sequence[Run], *, root: str, eval_split: str, eval_scenes: Optional[int],
-               out=sys.stdout) -> float:
+               out=None) -> float:
   """Prints one line per run (status, run directory, estimate) and the total; returns seconds."""
+  out = out or sys.stdout  # looked up per call, so a redirected stdout receives the plan
   total = 0.0
   for run in runs:
     rid, status, step = run_status(run, root=root, eval_split=eval_split, eval_scenes=eval_scenes)
