@@ -13,6 +13,7 @@ import os
 import statistics
 from typing import Iterable, Optional, Sequence
 
+
 def pareto_front(costs: Sequence[float], values: Sequence[float]) -> list[int]:
   """Indices of the points no other point dominates (lower cost and higher value are better),
   ordered by cost. j dominates i when cost_j ≤ cost_i and value_j ≥ value_i, one strictly; equal

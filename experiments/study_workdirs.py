@@ -33,32 +33,16 @@ NOT_TRAINING = ("seed", "train.eval_every", "train.eval_scenes", "train.log_ever
                 "train.checkpoint_every", "train.select_by")
 
 
-def _flat(tree: dict, prefix: str = "") -> dict:
-  out = {}
-  for k, v in tree.items():
-    if isinstance(v, dict):
-      out.update(_flat(v, f"{prefix}{k}."))
-    else:
-      out[prefix + k] = v
-  return out
-
-
 def training_differences(saved: dict, config) -> dict:
   """{field: [saved, named]} for the fields, other than NOT_TRAINING, in which the run's saved
   config differs from `config`; a field the saved config lacks reads as base_config's value."""
+  from slotlifter_jax import checkpoints
   from slotlifter_jax import defaults
-  named = _flat(json.loads(config.to_json_best_effort()))
-  base = _flat(json.loads(defaults.base_config().to_json_best_effort()))
-  saved = _flat(saved)
-  out = {}
-  for field in sorted(set(named) | set(saved)):
-    if field in NOT_TRAINING:
-      continue
-    a = saved.get(field, base.get(field))
-    b = named.get(field, base.get(field))
-    if json.dumps(a) != json.dumps(b):
-      out[field] = [a, b]
-  return out
+  base = json.loads(defaults.base_config().to_json_best_effort())
+  filled = dict(base, **{k: dict(base.get(k, {}), **v) if isinstance(v, dict) else v
+                         for k, v in saved.items()})
+  return {field: values for field, values in checkpoints.config_changes(filled, config).items()
+          if field not in NOT_TRAINING}
 
 
 def workdir_id(run_dir: str) -> str:
@@ -112,11 +96,11 @@ def _evaluation(config, run_dir: str, *, split: str, eval_scenes: Optional[int],
   return result
 
 
-def workdir_row(run_dir: str, *, config_spec: str, study: str, name: str, eval_split: str,
-                eval_scenes: Optional[int], progress: bool = True) -> dict:
-  """One study row (study_common.CSV_COLUMNS) for a finished run trained by the entry point."""
+def workdir_row(run_dir: str, config, *, config_spec: str, study: str, name: str,
+                eval_split: str, eval_scenes: Optional[int], progress: bool = True) -> dict:
+  """One study row (study_common.CSV_COLUMNS) for a finished run trained by the entry point;
+  `config` is what `check_workdir(run_dir, config_spec)` returned."""
   from slotlifter_jax import train
-  config = check_workdir(run_dir, config_spec)
   result = _evaluation(config, run_dir, split=eval_split, eval_scenes=eval_scenes,
                        progress=progress)
   train_records, val_records = sc.read_log(run_dir)
@@ -140,10 +124,11 @@ def workdir_row(run_dir: str, *, config_spec: str, study: str, name: str, eval_s
 def workdir_rows(run_dirs, **kwargs) -> list[dict]:
   """`workdir_row` for each directory; every directory is checked before any is evaluated, and
   two runs with one seed are refused (they would count one seed twice)."""
-  specs = {}
+  configs, seen = [], {}
   for d in run_dirs:
     config = check_workdir(d, kwargs["config_spec"])
-    if config.seed in specs:
-      raise sc.StudyError(f"--workdirs: {specs[config.seed]} and {d} are both seed {config.seed}")
-    specs[config.seed] = d
-  return [workdir_row(d, **kwargs) for d in run_dirs]
+    if config.seed in seen:
+      raise sc.StudyError(f"--workdirs: {seen[config.seed]} and {d} are both seed {config.seed}")
+    seen[config.seed] = d
+    configs.append(config)
+  return [workdir_row(d, config, **kwargs) for d, config in zip(run_dirs, configs)]
