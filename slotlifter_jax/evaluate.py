@@ -215,20 +215,29 @@ class LoadedRun:
   checkpoint_dir: str  # DIR/checkpoints/{best,latest}/<step>
   scenes: list[Scene]
   split: str
+  differs_from_training: dict  # `differences_from_training`
 
 
-def _warn_other_differences(config, saved: dict) -> None:
-  """Data and render settings may legitimately differ from training (another data root, chunk
-  size); they are reported, not refused. Only the model section must match (check_compatible)."""
+def differences_from_training(config, saved: dict) -> dict:
+  """{'section.field': [saved, now]} for the data and render settings that differ from training.
+
+  They may legitimately differ (another data root, more samples per ray): they are warned about
+  and recorded in metrics.json, not refused. Only the model section must match
+  (check_compatible). The data root and how the same samples are computed (chunk size, adaptive
+  rendering, recorded as "renderer") are left out.
+  """
   current = json.loads(config.to_json_best_effort())
+  changes = {}
   for section, ignore in (("data", ("root",)), ("render", ("chunk",))):
     a, b = saved.get(section, {}), current.get(section, {})
     for k in sorted(set(a) | set(b)):
       if section == "render" and k.startswith("adaptive"):
-        continue  # how the evaluation renders (issue #7), like the chunk size
+        continue
       if k not in ignore and json.dumps(a.get(k)) != json.dumps(b.get(k)):
+        changes[f"{section}.{k}"] = [a.get(k), b.get(k)]
         logging.warning("%s.%s differs from the training run: saved %r, now %r", section, k,
                         a.get(k), b.get(k))
+  return changes
 
 
 def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
@@ -249,7 +258,7 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
     raise FileNotFoundError(f"{ckpt_lib.config_path(workdir)}: not found; {workdir} is not a "
                             f"training run directory (train it first with --mode=train)")
   ckpt_lib.check_compatible(config, saved, workdir)
-  _warn_other_differences(config, saved)
+  differs = differences_from_training(config, saved)
   config = multihost.primary_first(lambda: embedded.resolve_data(config), "data")  # generated once
   scenes = registry.load_split(config.data, split, max_scenes=max_scenes)
   # DTU/ScanNet training scenes pool their sources; evaluate them one target at a time, as the
@@ -262,7 +271,8 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
   params, step, step_dir = ckpt_lib.restore_params(model, config, workdir, scene=scenes[0],
                                                    checkpoint=checkpoint)
   return LoadedRun(config=config, model=model, params=params, step=step,
-                   checkpoint_dir=step_dir, scenes=scenes, split=split)
+                   checkpoint_dir=step_dir, scenes=scenes, split=split,
+                   differs_from_training=differs)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -391,6 +401,9 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
       # Adaptive rendering (issue #7) approximates the plain path; record that it was used.
       "renderer": ({k: run.config.render[k] for k in run.config.render if k.startswith("adaptive")}
                    if run.config.render.get("adaptive", False) else "plain"),
+      # A metric of a run rendered otherwise than it was trained (e.g. more samples per ray)
+      # must say so: {field: [trained with, evaluated with]}.
+      "differs_from_training": run.differs_from_training,
       "metrics": {k: {"mean": _finite_or_none(s.mean), "stderr": _finite_or_none(s.stderr),
                       "count": s.count, "skipped": s.skipped} for k, s in summary.items()},
       "definitions": _definitions(keys, lpips_net=net, lpips_quirk=lpips_quirk,

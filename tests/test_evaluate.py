@@ -255,6 +255,7 @@ def test_eval_writes_metrics_and_refuses_to_overwrite(run_dir):
   assert report["num_scenes"] == num_scenes
   assert report["quirks"] == {"lpips_quirk": False, "nv_ari_last_view": False}
   assert report["lpips_net"] == "alex"
+  assert report["differs_from_training"] == {}
   ranges = {"psnr_source": (0, 100), "psnr_novel": (0, 100), "ssim": (-1, 1), "lpips": (0, 2),
             "ari": (-1, 1), "fg_ari": (-1, 1), "nv_ari": (-1, 1), "nv_fg_ari": (-1, 1),
             "mbo": (0, 1), "miou": (0, 1), "nv_mbo": (0, 1), "nv_miou": (0, 1),
@@ -283,11 +284,17 @@ def test_eval_writes_metrics_and_refuses_to_overwrite(run_dir):
     assert f.read() == before
   assert os.stat(path).st_mtime_ns == mtime
 
-  evaluate.evaluate_split(config, run_dir, split="test", overwrite=True, max_scenes=1,
+  # Rendered with other settings than it was trained with: the file says so.
+  other = load_config()
+  other.render.num_samples = config.render.num_samples + 8
+  other.render.chunk = config.render.chunk // 2  # the same samples, computed in smaller pieces
+  evaluate.evaluate_split(other, run_dir, split="test", overwrite=True, max_scenes=1,
                           checkpoint="latest", lpips_quirk=True, nv_ari_last_view=True,
                           progress=False)
   with open(path) as f:
     again = json.load(f)
+  assert again["differs_from_training"] == {
+      "render.num_samples": [config.render.num_samples, config.render.num_samples + 8]}
   assert again["num_scenes"] == 1 and again["metrics"]["nv_ari"]["count"] == 1
   assert again["quirks"] == {"lpips_quirk": True, "nv_ari_last_view": True}
   assert again["checkpoint"]["step"] == config.train.num_steps
