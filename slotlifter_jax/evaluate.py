@@ -226,17 +226,12 @@ def differences_from_training(config, saved: dict) -> dict:
   (check_compatible). The data root and how the same samples are computed (chunk size, adaptive
   rendering, recorded as "renderer") are left out.
   """
-  current = json.loads(config.to_json_best_effort())
-  changes = {}
-  for section, ignore in (("data", ("root",)), ("render", ("chunk",))):
-    a, b = saved.get(section, {}), current.get(section, {})
-    for k in sorted(set(a) | set(b)):
-      if section == "render" and k.startswith("adaptive"):
-        continue
-      if k not in ignore and json.dumps(a.get(k)) != json.dumps(b.get(k)):
-        changes[f"{section}.{k}"] = [a.get(k), b.get(k)]
-        logging.warning("%s.%s differs from the training run: saved %r, now %r", section, k,
-                        a.get(k), b.get(k))
+  changes = {field: values for field, values in ckpt_lib.config_changes(saved, config).items()
+             if field.split(".")[0] in ("data", "render")
+             and field not in ("data.root", "render.chunk")
+             and not field.startswith("render.adaptive")}
+  for field, (a, b) in changes.items():
+    logging.warning("%s differs from the training run: saved %r, now %r", field, a, b)
   return changes
 
 
