@@ -24,9 +24,10 @@ Note that PSNR and ARI at 32² are measured at 32², so they are not the same ta
 `--grid=fast` draws the same chart around configs/clevr.py:fast at its own budget (60 000 steps,
 the schedules unscaled), where the model decomposes, so the FG-ARI axis measures decomposition
 rather than noise (FAST_POINTS: samples per ray 8 / 32 against 16, rays per scene 64 / 256
-against 128, slot width 64, 4 allocation blocks). Its files are pareto_fast.csv/.md/.png. Its
-`base` run is the same run directory as `ablations.py --config=configs/clevr.py:fast`'s `full`
-(study_common.run_id), so the two studies share it. About 50 min per point alone on this CPU.
+against 128, slot width 64, 4 allocation blocks, colour MLP width 64). Its files are
+pareto_fast.csv/.md/.png. Its `base` run is the same run directory as
+`ablations.py --config=configs/clevr.py:fast`'s `full` (study_common.run_id), so the two studies
+share it. About 50 min per point alone on this CPU.
 
 Time: 45 min measured on the 2-core CPU for the defaults (600 steps, 20 scenes; 19:17–20:11 on
 2026-11-22, experiments/README.md); --dry_run prints an estimate from the cost model in
@@ -73,6 +74,8 @@ FAST_POINTS = {
     "rays256": {"train.rays_per_scene": 256},
     "slots64": {"model.slot_dim": 64, "model.slot_mlp_dim": 128},
     "blocks4": {"model.num_blocks": 4},
+    # Colour per point, not the allocation to slots: PSNR that need not cost the split?
+    "colour64": {"model.colour_hidden": 64},
 }
 # --grid: (base config, points, budget, file stem).
 GRIDS = {"quick": (BASE, POINTS, NUM_STEPS, "pareto"),
