@@ -1,0 +1,157 @@
+"""Tests of the generator's easier CLEVR sets (min_objects / max_objects / object_scale, the
+ladder of issue "Objects emerge on this CPU") against independent references (generator_refs.py).
+"""
+
+import hashlib
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from generator_refs import check_views, generate_small, read_labels, read_splits
+from slotlifter_jax.data import generator
+
+
+# sha256 of `_scene_digest(generate_scene(default_rng(0), family="clevr", views=2, image_size=16))`
+# computed with the generator before these options existed: the default draws must not change.
+DEFAULT_SCENE_DIGEST = "7d31b5c718f938860003e8a40d0d7f51e0dce6d85e345af8f06a437795d856f1"
+# The model's locality box (defaults.py: model.locality_box = 0.64 in the scene frame) in world
+# units: 0.64 / scene_scale.
+LOCALITY_BOX_WORLD = 0.64 / generator.SCENE_SCALE
+
+
+def _rounded(x):
+  """Floats to 9 significant digits, so the digest does not hang on a libm's last bit."""
+  if isinstance(x, float):
+    return float(f"{x:.9g}")
+  if isinstance(x, dict):
+    return {k: _rounded(v) for k, v in x.items()}
+  if isinstance(x, (list, tuple)):
+    return [_rounded(v) for v in x]
+  return x
+
+
+def _scene_digest(scene):
+  """What the random draws decide: objects, cameras, lights and the number of layouts drawn."""
+  d = {"objects": [o.to_json() for o in scene.spec.objects],
+       "cameras": [c.to_json() for c in scene.cameras],
+       "lights": [{"direction": l.direction, "intensity": l.intensity} for l in scene.spec.lights],
+       "attempts": scene.attempts}
+  return hashlib.sha256(json.dumps(_rounded(d), sort_keys=True).encode()).hexdigest()
+
+
+def test_default_object_options_leave_output_unchanged():
+  kw = dict(family="clevr", views=2, image_size=16)
+  default = generator.generate_scene(np.random.default_rng(0), **kw)
+  assert _scene_digest(default) == DEFAULT_SCENE_DIGEST
+  explicit = generator.generate_scene(np.random.default_rng(0), min_objects=5, max_objects=7,
+                                      object_scale=1.0, **kw)
+  for name in ("rgb", "label", "depth", "cam_to_world"):
+    np.testing.assert_array_equal(getattr(explicit, name), getattr(default, name))
+  assert explicit.spec == default.spec and explicit.attempts == default.attempts
+
+
+def test_object_count_is_respected():
+  for i in range(40):  # layouts only: cheap
+    rng = np.random.default_rng(i)
+    assert len(generator.sample_clevr_layout(rng, min_objects=2, max_objects=2).objects) == 2
+    n = len(generator.sample_room_layout(rng, min_objects=1, max_objects=2).objects)
+    assert 1 <= n <= 2
+
+
+def test_scaled_objects_fit_on_floor_apart_and_inside_locality_box():
+  scale = generator.MAX_OBJECT_SCALE  # the worst case
+  counts = set()
+  for i in range(100):
+    spec = generator.sample_clevr_layout(np.random.default_rng(i), min_objects=1, max_objects=3,
+                                         object_scale=scale)
+    objs = [o.to_json() for o in spec.objects]
+    counts.add(len(objs))
+    for o in objs:
+      (part,) = o["parts"]
+      r = generator.CLEVR_SIZES[o["size"]] * scale
+      assert o["radius"] == pytest.approx(r) and part["half_size"] == pytest.approx([r] * 3)
+      assert o["position"][2] == pytest.approx(r)  # resting on the floor
+      x, y, top = abs(o["position"][0]), abs(o["position"][1]), 2 * r
+      # Inside the default scenes' footprint, and well inside the locality box.
+      assert max(x, y) + o["bounding_radius"] <= generator.CLEVR_FOOTPRINT + 1e-9
+      assert max(x, y) + o["bounding_radius"] <= LOCALITY_BOX_WORLD - 0.4
+      assert top <= LOCALITY_BOX_WORLD - 1.0
+    for a in range(len(objs)):
+      for b in range(a):
+        gap = np.hypot(objs[a]["position"][0] - objs[b]["position"][0],
+                       objs[a]["position"][1] - objs[b]["position"][1])
+        assert gap >= objs[a]["bounding_radius"] + objs[b]["bounding_radius"] + generator.MIN_GAP
+  assert counts == {1, 2, 3}
+
+
+def test_easy_set_has_two_objects_each_1p6_times_the_default_size(tmp_path):
+  generate_small(tmp_path, "clevr", num_train=2, num_val=0, num_test=0, views=2, image_size=24,
+            min_objects=2, max_objects=2, object_scale=1.6)
+  (path, meta), = [s for s in read_splits(tmp_path) if s[0].endswith("_train")]
+  assert meta["objects"] == {"min_objects": 2, "max_objects": 2, "object_scale": 1.6}
+  for scene in meta["scenes"]:
+    objs = scene["objects"]
+    assert [o["label"] for o in objs] == [1, 2]
+    for o in objs:
+      assert o["radius"] == pytest.approx(1.6 * generator.CLEVR_SIZES[o["size"]])
+      shape_factor = np.sqrt(2.0) if o["shape"] == "cube" else 1.0
+      assert o["bounding_radius"] == pytest.approx(o["radius"] * shape_factor)
+    # The source view shows both objects, each with its own label.
+    labels = read_labels(os.path.join(path, scene["views"][0]), meta["mask"]["label_grey_levels"])
+    assert set(np.unique(labels)) == {0, 1, 2}
+  check_views(tmp_path, "clevr")  # depths and masks agree with the (larger) geometry
+  # The default set records no object options, so its dataset.json is unchanged.
+  assert "objects" not in generator._split_header(
+      family="clevr", split="train", seed=0, views=4, image_size=16, num_scenes=1, supersample=2,
+      min_objects=5, max_objects=7)
+
+
+def test_existing_split_with_other_object_options_is_not_kept(tmp_path):
+  kw = dict(num_train=1, num_val=0, num_test=0, views=1, image_size=16)
+  generate_small(tmp_path, "clevr", min_objects=1, max_objects=1, **kw)
+  with pytest.raises(FileExistsError):  # the default set's header lacks "objects": no match
+    generate_small(tmp_path, "clevr", **kw)
+
+
+def test_bad_object_options_name_the_field():
+  cases = [("clevr", dict(min_objects=4, max_objects=3), "min_objects"),
+           ("clevr", dict(max_objects=8), "max_objects"),
+           ("clevr", dict(object_scale=0.0), "object_scale"),
+           ("clevr", dict(object_scale=2.5), "object_scale"),
+           ("room", dict(object_scale=1.6), "object_scale")]
+  for family, kw, field in cases:
+    with pytest.raises(ValueError, match=field) as info:
+      generator.check_object_options(family, **kw)
+    assert info.value.field == field
+
+
+def test_cache_name_changes_only_for_non_default_object_options():
+  import ml_collections
+  from slotlifter_jax import defaults
+  from slotlifter_jax.data import embedded
+  d = defaults.base_config().data
+  default_name = os.path.basename(embedded.dataset_dir(d, seed=0))
+  assert default_name == "clevr-v1-128px-4v-1000-100-100-s0"  # the name before the options
+  old = d.to_dict()  # a config saved before the fields existed
+  for k in ("min_objects", "max_objects", "object_scale"):
+    del old[k]
+  assert os.path.basename(embedded.dataset_dir(ml_collections.ConfigDict(old), seed=0)) == (
+      default_name)
+  d.min_objects, d.max_objects = 5, 7  # explicit defaults: the same set, the same folder
+  assert os.path.basename(embedded.dataset_dir(d, seed=0)) == default_name
+  d.min_objects, d.max_objects, d.object_scale = 1, 3, 1.6
+  assert os.path.basename(embedded.dataset_dir(d, seed=0)) == default_name + "-o1-3-x1.6"
+
+
+def test_cli_rejects_min_objects_above_max_objects(tmp_path):
+  cmd = [sys.executable, "-m", "slotlifter_jax.data.generate", "--family=clevr",
+         f"--out={tmp_path}", "--min_objects=3", "--max_objects=2", "--noprogress"]
+  result = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
+  assert result.returncode != 0
+  last = result.stderr.strip().splitlines()[-1]
+  assert last.startswith("error: --min_objects") and "max_objects" in last
+  assert not os.listdir(tmp_path)
