@@ -314,7 +314,9 @@ def fast(c):
   - batch 4 scenes × 128 rays instead of 2 × 256: the same decoder cost, and slot attention sees
     twice as many scenes per step (it is sensitive to batch size: OSRT, BO-QSA). 8 × 64 costs
     more, because the encoder then runs on 8 source views per step. 4 × 64 trains in 0.67× the
-    time at the same PSNR (26.1 dB) but stops splitting (FG-ARI 0.59, NV-ARI 0.50).
+    time at the same PSNR (26.1 dB) but stops splitting (FG-ARI 0.59, NV-ARI 0.50); 4 × 256
+    gains 0.7 dB (26.6) and keeps the split inside the seed spread (FG-ARI 0.69, NV-ARI 0.81),
+    but trains in 1.6× the time (83 min), which leaves no room in a 90-minute budget.
   - host batches, one step per dispatch (`data.sampler = "host"`): at 4 × 128 rays the NumPy
     gather costs 0.4 ms, while drawing the batch inside the jitted step (`data.sampler =
     "device"`, needed for `data.curriculum`) measured 3–22 % slower, and a `lax.scan` over steps
