@@ -114,12 +114,19 @@ def base_config() -> ml_collections.ConfigDict:
   # Object-count curriculum ((start_step, max_objects), …), device sampler only: from each start
   # step on only training scenes with at most max_objects objects are drawn. () = off.
   d.curriculum = ()
+  # Training scenes by step ((start_step, num_scenes), …), host sampler only: from each start step
+  # on, batches come from the first num_scenes training scenes; before the first stage and with
+  # () from all of them (data/pipeline.py). Grows the set once the slots have settled.
+  d.scene_stages = ()
 
   # ---- training (docs/method.md §2) ----
   t = c.train = ml_collections.ConfigDict()
   t.num_steps = 250_000
   t.batch_scenes = 4
   t.rays_per_scene = 1024
+  # Rays per scene by step ((start_step, rays), …), host sampler only: from each start step on,
+  # that many rays; before the first stage and with (), rays_per_scene (data/pipeline.py).
+  t.ray_stages = ()
   t.base_lr = 5e-5
   t.lr_floor = 0.02
   t.warmup_steps = 10_000

@@ -158,6 +158,10 @@ def _check_sampler(config, train_scenes) -> bool:
     if curriculum:
       raise ConfigError("data.curriculum needs data.sampler=device")
     return False
+  for field, stages in (("data.scene_stages", config.data.get("scene_stages", ())),
+                        ("train.ray_stages", config.train.get("ray_stages", ()))):
+    if stages:
+      raise ConfigError(f"{field} needs data.sampler=host")
   if config.data.ray_sampling != "uniform":
     raise ConfigError(f"data.ray_sampling={config.data.ray_sampling!r} needs data.sampler=host")
   if block < 1:
@@ -286,11 +290,17 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   if config.train.rays_per_scene % config.train.ray_chunks:
     raise ConfigError(f"train.rays_per_scene={config.train.rays_per_scene} must be a multiple of "
                      f"train.ray_chunks={config.train.ray_chunks}")
-  sampler = pipeline.BatchSampler(
-      train_scenes, num_source_views=config.data.num_source_views,
-      batch_scenes=config.train.batch_scenes, rays_per_scene=config.train.rays_per_scene,
-      novel_ray_prob=config.data.novel_ray_prob, seed=config.seed,
-      ray_sampling=config.data.ray_sampling, contrast_mix=config.data.contrast_mix)
+  try:
+    ray_stages = pipeline.check_stages(config.train.get("ray_stages", ()), field="train.ray_stages",
+                                       upper=2**31 - 1, multiple_of=config.train.ray_chunks)
+    sampler = pipeline.BatchSampler(
+        train_scenes, num_source_views=config.data.num_source_views,
+        batch_scenes=config.train.batch_scenes, rays_per_scene=config.train.rays_per_scene,
+        novel_ray_prob=config.data.novel_ray_prob, seed=config.seed,
+        ray_sampling=config.data.ray_sampling, contrast_mix=config.data.contrast_mix,
+        scene_stages=config.data.get("scene_stages", ()), ray_stages=ray_stages)
+  except ValueError as e:
+    raise ConfigError(str(e)) from e
   on_device = _check_sampler(config, train_scenes)
   if multihost.is_primary():
     ckpt_lib.save_config(config, workdir, step=ckpt_lib.latest_step_on_disk(workdir))

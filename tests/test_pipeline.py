@@ -295,3 +295,66 @@ def test_uniform_sampling_is_unchanged_by_the_contrast_option():
                             contrast_mix=0.9).draw(5)
   for field in ("scene_index", "ray_views", "ray_rows", "ray_cols"):
     np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+
+
+def test_stage_value_is_the_last_stage_started():
+  stages = ((0, 2), (10, 5), (30, 7))
+  assert [pipeline.stage_value(t, stages, 9) for t in (0, 9, 10, 29, 30, 10**6)] == [2, 2, 5, 5, 7, 7]
+  assert [pipeline.stage_value(t, ((10, 5),), 9) for t in (0, 9, 10)] == [9, 9, 5]
+  assert pipeline.stage_value(3, (), 9) == 9
+
+
+def _assert_same_batch(x, y):
+  assert set(x) == set(y)
+  for k in x:
+    np.testing.assert_array_equal(x[k], y[k], err_msg=k)
+
+
+@pytest.mark.parametrize("ray_sampling", ["uniform", "contrast"])
+def test_scene_stages_draw_as_a_sampler_of_the_first_scenes(ray_sampling):
+  """Until a stage starts, a staged sampler's batches are those of a sampler over the first
+  num_scenes scenes; afterwards those of a sampler over all of them (so a run is a prefix of the
+  same run with a later stage added)."""
+  scenes = [make_scene(f"s{i}", seed=i) for i in range(6)]
+  kw = dict(batch_scenes=2, rays_per_scene=13, num_source_views=1, novel_ray_prob=0.75, seed=3,
+            ray_sampling=ray_sampling)
+  staged = pipeline.BatchSampler(scenes, scene_stages=((0, 2), (10, 6)), **kw)
+  first_two = pipeline.BatchSampler(scenes[:2], **kw)
+  every = pipeline.BatchSampler(scenes, **kw)
+  drawn = set()
+  for step in range(20):
+    batch = staged.batch(step)
+    _assert_same_batch(batch, (first_two if step < 10 else every).batch(step))
+    if step < 10:
+      assert set(batch["scene_index"].tolist()) <= {0, 1}
+    else:
+      drawn |= set(batch["scene_index"].tolist())
+  assert drawn - {0, 1}  # the later scenes are drawn once their stage starts
+
+
+def test_ray_stages_change_the_rays_per_scene_from_their_step():
+  scenes = [make_scene(f"s{i}", seed=i) for i in range(3)]
+  staged = pipeline.BatchSampler(scenes, batch_scenes=2, rays_per_scene=13, num_source_views=1,
+                                 novel_ray_prob=0.75, seed=3, ray_stages=((5, 20),))
+  for step in (0, 4, 5, 9):
+    expected = sampler_for(scenes, r=13 if step < 5 else 20).batch(step)
+    _assert_same_batch(staged.batch(step), expected)
+    assert staged.batch(step)["target_rgb"].shape == (2, 13 if step < 5 else 20, 3)
+
+
+def test_bad_stages_are_named():
+  scenes = [make_scene(f"s{i}", seed=i) for i in range(3)]
+  kw = dict(batch_scenes=2, rays_per_scene=13, num_source_views=1, novel_ray_prob=0.75, seed=3)
+  with pytest.raises(ValueError, match=r"data.scene_stages: 4 \(stage from step 10\) must lie in "
+                                       r"\[1, 3\]"):
+    pipeline.BatchSampler(scenes, scene_stages=((0, 2), (10, 4)), **kw)
+  with pytest.raises(ValueError, match="data.scene_stages: start steps .10, 0. must be ≥ 0 and "
+                                       "strictly increasing"):
+    pipeline.BatchSampler(scenes, scene_stages=((10, 2), (0, 3)), **kw)
+  with pytest.raises(ValueError, match="train.ray_stages: stage .* is not"):
+    pipeline.BatchSampler(scenes, ray_stages=((5,),), **kw)
+  with pytest.raises(DataError, match=f"fewer than {4 * H * W} pixels"):
+    pipeline.BatchSampler(scenes, ray_stages=((5, 4 * H * W),), **kw)
+  with pytest.raises(ValueError, match=r"train.ray_stages: 30 \(stage from step 2\) is not a "
+                                       r"multiple of 4"):
+    pipeline.check_stages(((2, 30),), field="train.ray_stages", upper=100, multiple_of=4)

@@ -181,6 +181,27 @@ def test_resume_after_interrupt_is_exact(tmp_path, monkeypatch):
 
 
 @pytest.mark.slow
+def test_staged_run_changes_its_batch_and_resumes_exactly(tmp_path, monkeypatch):
+  """Stages of scenes and rays that start at the interrupted step: the step compiles for the new
+  ray count, and the resumed run still ends bit-identical to the straight one."""
+  config = load_config()
+  config.train.num_steps = 6
+  config.data.scene_stages = ((0, 2), (3, config.data.num_train_scenes))
+  config.train.ray_stages = ((3, 2 * config.train.rays_per_scene),)
+  seen = []
+  real_assemble = step_lib.assemble_batch
+  def recording(batch, *args, **kwargs):
+    seen.append((batch["target_rgb"].shape[1], set(batch["scene_index"].tolist())))
+    return real_assemble(batch, *args, **kwargs)
+  monkeypatch.setattr(step_lib, "assemble_batch", recording)
+  train.train_and_evaluate(config, str(tmp_path / "probe"))
+  r = config.train.rays_per_scene
+  assert [rays for rays, _ in seen] == [r] * 3 + [2 * r] * 3
+  assert set().union(*(scenes for _, scenes in seen[:3])) <= {0, 1}
+  _straight_and_interrupted_runs(config, tmp_path, monkeypatch, "make_train_step")
+
+
+@pytest.mark.slow
 def test_device_sampled_run_resumes_exactly_and_records_its_clock(tmp_path, monkeypatch):
   """data.sampler=device: batches drawn inside the step are a function of (seed, step), so an
   interrupted and resumed run ends bit-identical; every record carries the run's wall clock,
@@ -211,6 +232,21 @@ def test_sampler_settings_are_checked_before_training(tmp_path):
   config.data.sampler = "disk"
   with pytest.raises(ValueError, match="data.sampler is 'disk'"):
     train.train_and_evaluate(config, str(tmp_path / "c"))
+  config = load_config()
+  config.data.scene_stages = ((0, 2), (3, config.data.num_train_scenes + 1))
+  with pytest.raises(train.ConfigError, match=r"data.scene_stages: 5 \(stage from step 3\) must "
+                                              r"lie in \[1, 4\]"):
+    train.train_and_evaluate(config, str(tmp_path / "d"))
+  config = load_config()
+  config.train.ray_chunks = 2
+  config.train.ray_stages = ((3, 9),)
+  with pytest.raises(train.ConfigError, match=r"train.ray_stages: 9 \(stage from step 3\) is not "
+                                              r"a multiple of 2"):
+    train.train_and_evaluate(config, str(tmp_path / "e"))
+  config.train.ray_stages = ((3, 8),)
+  config.data.sampler = "device"
+  with pytest.raises(train.ConfigError, match="train.ray_stages needs data.sampler=host"):
+    train.train_and_evaluate(config, str(tmp_path / "f"))
   assert not os.listdir(tmp_path)  # no run folder is created for a config that cannot train
   (tmp_path / "file").write_text("")
   with pytest.raises(FileExistsError, match="file: exists and is not a directory"):

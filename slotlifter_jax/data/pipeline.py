@@ -29,6 +29,15 @@ objects' share of the rays to 41 % (experiments/ray_foreground_share.py). It rew
 photometric loss towards contrasted pixels, a departure from the paper; no shipped config uses it
 (it did not help the quick run: README, "The quick model").
 
+Stages (`scene_stages`, `ray_stages`: ((start_step, value), …), sorted by start step): from each
+start step on, batches are drawn from the first `value` scenes of the list, or carry `value` rays
+per scene; before the first stage, from all scenes and with `rays_per_scene` rays. A step's draw
+depends on the stage it falls in only, so until a stage starts every batch equals that of a sampler
+without it, and a run may be resumed with a stage added after its last step. They exist to grow the
+training set and the ray batch once slot attention's grouping has settled: from step 0, more
+scenes or rays delay the grouping the embedded runs rely on (experiments/README.md, "Emergence",
+ninth and tenth rounds).
+
 Every random choice of step t comes from `np.random.default_rng([seed, t])`, so batch t is the same
 in a resumed run, whatever came before. `prefetch` builds batches on a background thread.
 """
@@ -67,6 +76,37 @@ def weighted_choice_without_replacement(rng: np.random.Generator, *, probs: np.n
   (Gumbel top-k: the `size` largest log p + Gumbel noise). Zero-probability entries come last."""
   keys = np.log(np.maximum(probs, 1e-300)) + rng.gumbel(size=probs.shape)
   return np.argpartition(-keys, size - 1)[:size]
+
+
+def stage_value(step: int, stages, default: int) -> int:
+  """The value of the last stage ((start_step, value), …, sorted) started by `step`; before the
+  first stage and with no stages, `default`."""
+  value = default
+  for start, v in stages:
+    if step >= start:
+      value = v
+  return int(value)
+
+
+def check_stages(stages, *, field: str, upper: int, multiple_of: int = 1
+                 ) -> tuple[tuple[int, int], ...]:
+  """Validates stages ((start_step, value), …) for config field `field`: start steps ≥ 0 and
+  increasing, each value in [1, upper] and a multiple of `multiple_of`. Returns int pairs."""
+  out = []
+  for stage in stages:
+    if len(stage) != 2:
+      raise ValueError(f"{field}: stage {tuple(stage)!r} is not (start_step, value)")
+    out.append((int(stage[0]), int(stage[1])))
+  starts = [s for s, _ in out]
+  if any(s < 0 for s in starts) or starts != sorted(set(starts)):
+    raise ValueError(f"{field}: start steps {starts} must be ≥ 0 and strictly increasing")
+  for start, value in out:
+    if not 1 <= value <= upper:
+      raise ValueError(f"{field}: {value} (stage from step {start}) must lie in [1, {upper}]")
+    if value % multiple_of:
+      raise ValueError(f"{field}: {value} (stage from step {start}) is not a multiple of "
+                       f"{multiple_of}")
+  return tuple(out)
 
 
 BATCH_KEYS = ("source_images", "source_cam_to_world", "source_intrinsics", "ray_origins",
@@ -133,7 +173,8 @@ class BatchSampler:
 
   def __init__(self, scenes: Sequence[Scene], *, batch_scenes: int, rays_per_scene: int,
                num_source_views: int, novel_ray_prob: float, seed: int,
-               ray_sampling: str = "uniform", contrast_mix: float = 0.5):
+               ray_sampling: str = "uniform", contrast_mix: float = 0.5,
+               scene_stages=(), ray_stages=()):
     if not scenes:
       raise DataError("BatchSampler: no scenes to draw from")
     if ray_sampling not in RAY_SAMPLING:
@@ -150,11 +191,23 @@ class BatchSampler:
     self.novel_ray_prob = float(novel_ray_prob)
     self.seed = int(seed)
     self._sources: dict[tuple[int, int], tuple[int, ...]] = {}  # (scene, target) → sources
+    self.scene_stages = check_stages(scene_stages, field="data.scene_stages",
+                                     upper=len(self.scenes))
+    self.ray_stages = check_stages(ray_stages, field="train.ray_stages", upper=2**31 - 1)
     self._check()
+
+  def num_scenes_at(self, step: int) -> int:
+    """How many scenes (the first ones of the list) step `step` draws from."""
+    return stage_value(step, self.scene_stages, len(self.scenes))
+
+  def rays_at(self, step: int) -> int:
+    """Rays per scene of step `step`'s batch."""
+    return stage_value(step, self.ray_stages, self.rays_per_scene)
 
   def _check(self) -> None:
     size = self.scenes[0].image_size
     pixels = size[0] * size[1]
+    rays = max([self.rays_per_scene] + [r for _, r in self.ray_stages])
     for scene in self.scenes:
       if scene.image_size != size:
         raise DataError(f"scene {scene.name}: images are {scene.image_size} but scene "
@@ -164,12 +217,12 @@ class BatchSampler:
           raise DataError(f"scene {scene.name}: {len(scene.source_indices)} source views, "
                           f"data.num_source_views is {self.num_source_views}")
         novel = len(scene.novel_indices) or scene.num_views
-        if novel * pixels < self.rays_per_scene:
+        if novel * pixels < rays:
           raise DataError(f"scene {scene.name}: {novel} novel views of {size} hold fewer than "
-                          f"{self.rays_per_scene} pixels")
-      elif pixels < self.rays_per_scene:
+                          f"{rays} pixels")
+      elif pixels < rays:
         raise DataError(f"scene {scene.name}: a {size} target view holds fewer than "
-                        f"{self.rays_per_scene} pixels")
+                        f"{rays} pixels")
 
   def _scene_sources(self, scene_idx: int, target: int) -> tuple[int, ...]:
     key = (scene_idx, target)
@@ -179,9 +232,8 @@ class BatchSampler:
     return self._sources[key]
 
   def _pick(self, rng: np.random.Generator, scene_idx: int, views: np.ndarray,
-            pixels: int) -> np.ndarray:
-    """R distinct flat (view-in-pool, pixel) indices into len(views)·pixels candidates."""
-    r = self.rays_per_scene
+            pixels: int, r: int) -> np.ndarray:
+    """r distinct flat (view-in-pool, pixel) indices into len(views)·pixels candidates."""
     if self.ray_sampling == "uniform":
       return rng.choice(len(views) * pixels, size=r, replace=False)
     if scene_idx not in self._contrast:
@@ -197,7 +249,7 @@ class BatchSampler:
   def draw(self, step: int) -> BatchDraw:
     """The random choices of step `step` (scenes, targets, sources, pixels)."""
     rng = np.random.default_rng([self.seed, int(step)])
-    n, b, r = len(self.scenes), self.batch_scenes, self.rays_per_scene
+    n, b, r = self.num_scenes_at(step), self.batch_scenes, self.rays_at(step)
     scene_index = rng.choice(n, size=b, replace=n < b)
     height, width = self.scenes[0].image_size
     pixels = height * width
@@ -208,13 +260,13 @@ class BatchSampler:
         novel = scene.novel_indices
         only_novel = bool(novel) and rng.random() < self.novel_ray_prob
         pool = np.array(novel if only_novel else range(scene.num_views))  # candidate views
-        pick = self._pick(rng, int(s), pool, pixels)  # distinct (view, pixel)
+        pick = self._pick(rng, int(s), pool, pixels, r)  # distinct (view, pixel)
         views.append(pool[pick // pixels])
         sources.append(scene.source_indices)
         novel_only.append(only_novel)
       else:
         target = int(scene.target_indices[rng.integers(len(scene.target_indices))])
-        pick = self._pick(rng, int(s), np.array([target]), pixels)
+        pick = self._pick(rng, int(s), np.array([target]), pixels, r)
         views.append(np.full(r, target))
         sources.append(self._scene_sources(int(s), target))
         novel_only.append(True)
