@@ -324,9 +324,9 @@ def fast(c):
     time at the same PSNR (26.1 dB) but stops splitting (FG-ARI 0.59, NV-ARI 0.50); 4 × 256
     gains 0.7 dB (26.6) and keeps the split inside the seed spread (FG-ARI 0.69, NV-ARI 0.81),
     but trains in 1.6× the time (83 min), which leaves no room in a 90-minute budget. 256 rays
-    and 4000 scenes from step 26 000 only (`train.ray_stages`, `data.scene_stages`) keep the
-    split (FG-ARI 0.82, NV-ARI 0.82) in 72 min, but not the PSNR (26.1 dB on test scenes, 26.5
-    on training scenes; experiments/README.md, "Tenth round").
+    from step 26 000 only (`train.ray_stages`), with 1000 or 4000 scenes (`data.scene_stages`),
+    keep the split (FG-ARI 0.84 and 0.82, NV-ARI 0.83 and 0.82; 72 min with 4000) but not the PSNR
+    (26.2 and 26.1 dB; experiments/README.md, "Tenth round").
   - host batches, one step per dispatch (`data.sampler = "host"`): at 4 × 128 rays the NumPy
     gather costs 0.4 ms, while drawing the batch inside the jitted step (`data.sampler =
     "device"`, needed for `data.curriculum`) measured 3–22 % slower, and a `lax.scan` over steps
