@@ -8,7 +8,8 @@ Every view of every scene is rendered at full resolution (`rendering.views.Scene
 chunked), source views included. Per scene:
   source views  PSNR, ARI, FG-ARI, FG-ARI on views with ≥ 2 objects, mBO, matched mIoU
   novel views   PSNR, SSIM, LPIPS, NV-ARI, NV-FG-ARI (also on views with ≥ 2 objects), NV-mBO,
-                NV-mIoU
+                NV-mIoU; in the full evaluation also PSNR split by region (`regions`): pixels a
+                source view sees or not (sets with depth), objects or background (sets with masks)
   all views     slots owning ≥ 1 % of the foreground vs the ground-truth object count
 A per-view value is averaged over the scene's views of its kind (views where it is NaN — no
 ground-truth mask, or no foreground for the FG metrics — are skipped), then `metrics.summarize`
@@ -43,6 +44,7 @@ from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import metrics
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import multihost
+from slotlifter_jax import regions
 from slotlifter_jax.checkpoints import EvalSetupError
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import pipeline
@@ -73,6 +75,18 @@ METRIC_DEFINITIONS = {
     "ssim": "SSIM of the novel views: Gaussian window 11, sigma 1.5, K1 0.01, K2 0.03, valid "
             "region only, after piq's average pooling by round(min(H, W)/256)",
     "lpips": "LPIPS of the novel views ({net}); images mapped to [-1, 1] ({quirk})",
+    "psnr_novel_unseen": "PSNR (dB) of the novel views' pixels whose surface point no source view "
+                         "sees (ground-truth depth: outside the source frustum or occluded), "
+                         "squared error pooled over the scene's novel views",
+    "psnr_novel_seen": "PSNR (dB) of the novel views' pixels whose surface point a source view "
+                       "sees, squared error pooled over the scene's novel views",
+    "unseen_pixel_share": "share of the novel views' pixels that no source view sees",
+    "unseen_error_share": "share of the novel views' squared error on those pixels",
+    "psnr_novel_fg": "PSNR (dB) of the novel views' ground-truth object pixels, squared error "
+                     "pooled over the scene's novel views with masks",
+    "psnr_novel_bg": "PSNR (dB) of the novel views' background pixels, pooled likewise",
+    "fg_pixel_share": "share of the novel views' pixels (views with masks) on objects",
+    "fg_error_share": "share of the novel views' squared error (views with masks) on objects",
     "nv_ari": "ARI over all pixels of the novel views ({nv_rule})",
     "nv_fg_ari": "FG-ARI of the novel views ({nv_rule}); views without foreground skipped",
     "nv_fg_ari_multi": "FG-ARI of the novel views that show at least two ground-truth objects, "
@@ -147,6 +161,7 @@ def scene_metrics(rendered: views_lib.RenderedViews, scene: Scene, view_indices:
       out["ssim"] = _nan_mean(metrics.ssim(pred=colour[novel], target=target[novel]))
       out["lpips"] = _nan_mean(metrics.lpips(pred=colour[novel], target=target[novel],
                                              net=lpips_net, official_quirk=lpips_quirk))
+      out.update(_region_metrics(colour[novel], scene, views[novel]))
   if scene.masks is None:
     return out
 
@@ -191,6 +206,27 @@ def scene_metrics(rendered: views_lib.RenderedViews, scene: Scene, view_indices:
     out["active_slots"] = float(count.num_active[0])
     out["num_objects"] = float(count.num_objects[0])
     out["slot_excess"] = out["active_slots"] - out["num_objects"]
+  return out
+
+
+def _region_metrics(colour: np.ndarray, scene: Scene, novel_views: np.ndarray) -> dict:
+  """Novel-view PSNR split by source visibility and by object / background (`regions`)."""
+  squared_error = np.mean((colour - scene.images[novel_views]) ** 2, axis=-1)  # [n, H, W]
+  out = {}
+  if scene.depth is not None:
+    src = np.asarray(scene.source_indices, np.int64)
+    seen = regions.seen_by_sources(
+        depth=scene.depth[novel_views], cam_to_world=scene.cam_to_world[novel_views],
+        intrinsics=scene.intrinsics[novel_views], source_depth=scene.depth[src],
+        source_cam_to_world=scene.cam_to_world[src], source_intrinsics=scene.intrinsics[src])
+    out.update(regions.split_metrics(squared_error=squared_error, region=~seen, inside="unseen",
+                                     outside="seen"))
+  if scene.masks is not None:
+    masked = _views_with_mask(scene, novel_views)  # [n]
+    if masked.any():
+      out.update(regions.split_metrics(squared_error=squared_error[masked],
+                                       region=scene.masks[novel_views[masked]] > 0,
+                                       inside="fg", outside="bg"))
   return out
 
 
@@ -413,11 +449,12 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
 
 def format_table(result: EvalResult) -> str:
   """The means, standard errors and counts as a text table, with the evaluation time."""
+  width = max([len("metric")] + [len(k) for k in result.summary]) + 2
   lines = [f"split {result.split}: {len(result.per_scene)} scenes, checkpoint step "
            f"{result.checkpoint_step} ({result.checkpoint_dir})",
-           f"{'metric':<14}{'mean':>10}{'s.e.':>10}{'n':>6}"]
+           f"{'metric':<{width}}{'mean':>10}{'s.e.':>10}{'n':>6}"]
   for k, s in result.summary.items():
-    lines.append(f"{k:<14}{s.mean:>10.4f}{s.stderr:>10.4f}{s.count:>6d}")
+    lines.append(f"{k:<{width}}{s.mean:>10.4f}{s.stderr:>10.4f}{s.count:>6d}")
   t = result.timing
   lines.append(f"time: {t['total_s']:.1f} s in all (setup {t['setup_s']:.1f} s); per scene "
                f"{t['per_scene_mean_s']:.2f} s mean, {t['per_scene_median_s']:.2f} s median "

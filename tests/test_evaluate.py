@@ -259,7 +259,11 @@ def test_eval_writes_metrics_and_refuses_to_overwrite(run_dir):
   ranges = {"psnr_source": (0, 100), "psnr_novel": (0, 100), "ssim": (-1, 1), "lpips": (0, 2),
             "ari": (-1, 1), "fg_ari": (-1, 1), "nv_ari": (-1, 1), "nv_fg_ari": (-1, 1),
             "mbo": (0, 1), "miou": (0, 1), "nv_mbo": (0, 1), "nv_miou": (0, 1),
-            "active_slots": (0, config.model.num_slots), "num_objects": (1, 7)}
+            "active_slots": (0, config.model.num_slots), "num_objects": (1, 7),
+            # The embedded set stores depth, so novel PSNR is also split by source visibility.
+            "psnr_novel_seen": (0, 100), "psnr_novel_unseen": (0, 100),
+            "unseen_pixel_share": (0, 1), "unseen_error_share": (0, 1),
+            "psnr_novel_fg": (0, 100), "psnr_novel_bg": (0, 100), "fg_error_share": (0, 1)}
   for name, (lo, hi) in ranges.items():
     m = report["metrics"][name]
     assert m["count"] == num_scenes, name
