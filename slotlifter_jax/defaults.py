@@ -352,7 +352,9 @@ def fast(c):
     validation scenes); with it the grouping kept rising (FG-ARI 0.82 at step 34 000). The
     floor splits the floor of the scene over spare slots (NV-ARI 0.75); the release gathers
     it. Released at once, every seed lost FG-ARI (test split: 0.76, 0.58, 0.54 for seeds 0, 1,
-    2); released gradually, 0.84, 0.73, 0.63, with NV-ARI 0.82, 0.81, 0.83.
+    2); released gradually, 0.84, 0.73, 0.63, with NV-ARI 0.82, 0.81, 0.83. A floor of 0.25
+    from step 26 000 (seed 0) ends at 26.5 dB but FG-ARI 0.76: the same trade as training on
+    without the floor (experiments/README.md, "Eleventh round").
   - the best checkpoint is the one with the best worse-of-two of validation FG-ARI and NV-ARI
     (`train.select_by = "min_fg_nv"`): by NV-ARI alone, a release that merges objects wins.
   Measured on the full clevr set (5–7 objects, K = 8), this CPU with mimalloc, two runs side by
