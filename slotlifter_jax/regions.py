@@ -5,8 +5,8 @@ With one source view, every novel view shows parts of the scene the source never
 sides of objects, the floor they hide, floor outside the source's frustum. Lifting (§1.3) gives
 such a point nothing (outside the frustum) or the colour of the surface in front of it (behind
 an occluder), so it is rendered from the slots and from what the model learnt across scenes,
-while a point the source sees can draw on its own lifted colour. Novel-view
-PSNR pools both kinds of pixel; evaluation (slotlifter_jax/evaluate.py) also reports them apart:
+while a point the source sees can draw on its own lifted colour. Novel-view PSNR pools both
+kinds of pixel; evaluation (slotlifter_jax/evaluate.py) also reports them apart:
 
 - `seen_by_sources`: which pixels of a view show a surface point that a source view also sees,
   from ground-truth depth (the embedded sets store it, docs/method.md §3.5);
@@ -55,11 +55,12 @@ def seen_by_source(*, points: np.ndarray, source_depth: np.ndarray,
 
   A point is seen when it projects in front of the source camera into the image (between the
   outermost pixel centres, [0, W − 1] × [0, H − 1], where four pixels surround every projection)
-  and is no deeper than the farthest of the four source pixels around its projection. The farthest, not an interpolation: camera depth over a
-  plane or the front of a convex object is a convex function of the pixel, so its value inside
-  a pixel square never exceeds the corners' largest, and a visible point is never called hidden.
-  The price is a band of at most one pixel beside an occluding edge where a hidden point may
-  count as seen. A point at infinity is seen when one of those pixels shows nothing either.
+  and is no deeper than the farthest of the four source pixels around its projection. The
+  farthest, not an interpolation: camera depth over a plane or the front of a convex object is a
+  convex function of the pixel, so its value inside a pixel square never exceeds the corners'
+  largest, and where the four pixels show one surface the answer is exact. Where they straddle
+  an occluding edge it can go either way, in a band at most one source pixel wide. A point at
+  infinity is seen when one of those pixels shows nothing either.
   """
   height, width = source_depth.shape
   pose = np.asarray(source_cam_to_world, np.float64)

@@ -78,7 +78,8 @@ def _cast_visibility(novel_pose, source_pose, k, ball):
   if ball:
     blocked |= (~finite) & np.any(hits > 0, axis=-1)  # a sky direction through the ball
   _, source_label = _trace(source_pose, k, ball)
-  u0, v0 = np.floor(np.where(inside, u, 0)).astype(int), np.floor(np.where(inside, v, 0)).astype(int)
+  u0 = np.floor(np.where(inside, u, 0)).astype(int)
+  v0 = np.floor(np.where(inside, v, 0)).astype(int)
   u1, v1 = np.minimum(u0 + 1, SIZE - 1), np.minimum(v0 + 1, SIZE - 1)
   taps = np.stack([source_label[v0, u0], source_label[v0, u1], source_label[v1, u0],
                    source_label[v1, u1]])
