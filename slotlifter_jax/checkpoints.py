@@ -25,10 +25,12 @@ from slotlifter_jax.data.types import Scene
 
 # Fields whose change makes a checkpoint unusable: the parameter shapes depend on them.
 ARCHITECTURE_FIELDS = ("model",)
-# ...except these: the computation precision leaves parameters, gradients and optimiser state float32
-# with the same shapes (model.py, "Numerics"), so a run trained in float32 can be evaluated, resumed
-# or rendered in bfloat16 and back.
-NOT_ARCHITECTURE = ("model.dtype",)
+# ...except these. The computation precision leaves parameters, gradients and optimiser state
+# float32 with the same shapes (model.py, "Numerics"), so a run trained in float32 can be evaluated,
+# resumed or rendered in bfloat16 and back. Every slot attention iteration applies the same
+# parameters, so a run can be evaluated with more iterations than it was trained with (Locatello
+# et al. 2020 test with more); evaluation records either change (evaluate.differences_from_training).
+NOT_ARCHITECTURE = ("model.dtype", "model.slot_iters")
 # ...and these fields of other sections, because the weights are tied to them: a model trained with
 # positions in the source view's azimuth frame renders another frame's positions wrongly.
 ALSO_ARCHITECTURE = ("data.frame",)

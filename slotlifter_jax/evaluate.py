@@ -255,15 +255,17 @@ class LoadedRun:
 
 
 def differences_from_training(config, saved: dict) -> dict:
-  """{'section.field': [saved, now]} for the data and render settings that differ from training.
+  """{'section.field': [saved, now]} for the settings that differ from training.
 
-  They may legitimately differ (another data root, more samples per ray): they are warned about
-  and recorded in metrics.json, not refused. Only the model section must match
-  (check_compatible). The data root and how the same samples are computed (chunk size, adaptive
-  rendering, recorded as "renderer") are left out.
+  The data and render settings, and the model fields that shape no parameter
+  (`checkpoints.NOT_ARCHITECTURE`: the compute dtype, the slot attention iterations), may
+  legitimately differ (another data root, more samples per ray, more iterations): they are
+  warned about and recorded in metrics.json, not refused. The rest of the model section must
+  match (check_compatible). The data root and how the same samples are computed (chunk size,
+  adaptive rendering, recorded as "renderer") are left out.
   """
   changes = {field: values for field, values in ckpt_lib.config_changes(saved, config).items()
-             if field.split(".")[0] in ("data", "render")
+             if (field.split(".")[0] in ("data", "render") or field in ckpt_lib.NOT_ARCHITECTURE)
              and field not in ("data.root", "render.chunk")
              and not field.startswith("render.adaptive")}
   for field, (a, b) in changes.items():

@@ -292,13 +292,15 @@ def test_eval_writes_metrics_and_refuses_to_overwrite(run_dir):
   other = load_config()
   other.render.num_samples = config.render.num_samples + 8
   other.render.chunk = config.render.chunk // 2  # the same samples, computed in smaller pieces
+  other.model.slot_iters = config.model.slot_iters + 2  # shapes no parameter: allowed, recorded
   evaluate.evaluate_split(other, run_dir, split="test", overwrite=True, max_scenes=1,
                           checkpoint="latest", lpips_quirk=True, nv_ari_last_view=True,
                           progress=False)
   with open(path) as f:
     again = json.load(f)
   assert again["differs_from_training"] == {
-      "render.num_samples": [config.render.num_samples, config.render.num_samples + 8]}
+      "render.num_samples": [config.render.num_samples, config.render.num_samples + 8],
+      "model.slot_iters": [config.model.slot_iters, config.model.slot_iters + 2]}
   assert again["num_scenes"] == 1 and again["metrics"]["nv_ari"]["count"] == 1
   assert again["quirks"] == {"lpips_quirk": True, "nv_ari_last_view": True}
   assert again["checkpoint"]["step"] == config.train.num_steps

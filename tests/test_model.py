@@ -420,6 +420,26 @@ def test_a_run_may_change_its_compute_dtype_but_not_its_shapes():
   assert "model.dtype" not in str(err.value)
 
 
+def test_a_run_may_change_its_slot_iterations():
+  """Every slot attention iteration applies the same parameters, so the parameter tree does not
+  depend on their number and a run loads with another one (evaluation with more iterations);
+  a changed K still refuses, naming only that field."""
+  from slotlifter_jax import checkpoints as ckpt_lib
+  import json
+  config = defaults.base_config()
+  defaults.smoke(config)
+  saved = json.loads(config.to_json_best_effort())
+  more = config.copy_and_resolve_references()
+  more.model.slot_iters = config.model.slot_iters + 2
+  size = config.data.image_size
+  assert _tree_signature(_config_params(more, size)) == _tree_signature(_config_params(config, size))
+  ckpt_lib.check_compatible(more, saved, "run")  # no error
+  more.model.num_slots = config.model.num_slots + 1
+  with pytest.raises(ckpt_lib.CheckpointMismatchError, match="model.num_slots") as err:
+    ckpt_lib.check_compatible(more, saved, "run")
+  assert "slot_iters" not in str(err.value)
+
+
 def test_a_run_keeps_its_scene_frame():
   """The weights are tied to the frame positions are given in (data.frame, docs/method.md §3.6):
   another frame refuses, naming the field; a run saved before the field existed reads as "world"."""
