@@ -22,9 +22,14 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import math
 import os
 import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from slotlifter_jax import emergence  # noqa: E402
+from slotlifter_jax import metrics  # noqa: E402
 
 DEFAULT_METRICS = ("fg_ari", "nv_ari", "attn_fg_ari", "mbo", "psnr_novel", "psnr_source")
 
@@ -79,23 +84,17 @@ def paired_difference(base: dict[str, dict[str, float]], other: dict[str, dict[s
     raise PairedEvalError(f"the evaluations hold different scenes ({len(base)} and {len(other)}; "
                           f"e.g. {only[0]!r} is in one only): evaluate the same split and "
                           f"--max_scenes")
-  pairs = []
   for scene in base:
     if metric not in base[scene] or metric not in other[scene]:
       raise PairedEvalError(f"metric {metric!r} is not in both evaluations")
-    a, b = base[scene][metric], other[scene][metric]
-    if math.isfinite(a) and math.isfinite(b):
-      pairs.append((a, b))
-  n = len(pairs)
-  if n == 0:
-    return {"base": math.nan, "other": math.nan, "difference": math.nan, "stderr": math.nan,
-            "scenes": 0, "higher": 0, "lower": 0}
-  diffs = [b - a for a, b in pairs]
-  mean = sum(diffs) / n
-  stderr = (math.sqrt(sum((d - mean) ** 2 for d in diffs) / (n - 1) / n) if n > 1 else math.nan)
-  return {"base": sum(a for a, _ in pairs) / n, "other": sum(b for _, b in pairs) / n,
-          "difference": mean, "stderr": stderr, "scenes": n,
-          "higher": sum(d > 0 for d in diffs), "lower": sum(d < 0 for d in diffs)}
+  scenes = sorted(base)
+  a = np.array([base[s][metric] for s in scenes], np.float64)
+  b = np.array([other[s][metric] for s in scenes], np.float64)
+  both = np.isfinite(a) & np.isfinite(b)
+  diff = metrics.summarize(np.where(both, b - a, np.nan))  # the evaluation's own mean ± s.e.
+  return {"base": metrics.summarize(a[both]).mean, "other": metrics.summarize(b[both]).mean,
+          "difference": diff.mean, "stderr": diff.stderr, "scenes": diff.count,
+          "higher": int(np.sum((b - a)[both] > 0)), "lower": int(np.sum((b - a)[both] < 0))}
 
 
 def _label(meta: dict, folder: str) -> str:
@@ -137,17 +136,6 @@ def format_rows(result: dict) -> list[str]:
   return lines
 
 
-def _finite_or_none(x):
-  """JSON has no NaN: a value with no scenes to average is written as null."""
-  if isinstance(x, dict):
-    return {k: _finite_or_none(v) for k, v in x.items()}
-  if isinstance(x, list):
-    return [_finite_or_none(v) for v in x]
-  if isinstance(x, float) and not math.isfinite(x):
-    return None
-  return x
-
-
 def main(argv=None) -> int:
   p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   p.add_argument("evals", nargs="+", help="evaluation folders DIR/eval/<split>; the first is the "
@@ -167,11 +155,7 @@ def main(argv=None) -> int:
     return 1
   print("\n".join(format_rows(result)))
   if args.out:
-    tmp = args.out + ".tmp"
-    with open(tmp, "w") as f:
-      json.dump(_finite_or_none(result), f, indent=2, allow_nan=False)
-      f.write("\n")
-    os.replace(tmp, args.out)
+    emergence.write_json_atomically(args.out, result)  # NaN (no scenes to average) as null
     print(f"wrote {args.out}")
   return 0
 

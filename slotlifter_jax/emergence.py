@@ -252,16 +252,17 @@ def _jsonable(x):
   return x
 
 
-def _write_json_atomically(path: str, data) -> None:
-  """Writes a temporary file next to `path`, then renames it over `path`: a reader, or an
-  interrupted write, never sees a partial file (os.replace is atomic within one file system)."""
+def write_json_atomically(path: str, data) -> None:
+  """Writes `data` as strict JSON (NaN/inf as null, `_jsonable`) to a temporary file next to
+  `path`, then renames it over `path`: a reader, or an interrupted write, never sees a partial
+  file (os.replace is atomic within one file system)."""
   folder, name = os.path.split(os.path.abspath(path))
   # A fresh name in the same folder (os.replace does not cross file systems), opened exclusively;
   # not tempfile.mkstemp, whose 0600 mode would then be the result's.
   tmp = os.path.join(folder, f".{name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
   try:
     with open(tmp, "x") as f:
-      json.dump(data, f, indent=1, allow_nan=False)
+      json.dump(_jsonable(data), f, indent=1, allow_nan=False)
       f.write("\n")
       f.flush()
       os.fsync(f.fileno())
@@ -298,5 +299,5 @@ def write_emergence(workdir: str, **kwargs) -> dict:
   `summary_lines`) and "curves" (`curves` as lists); NaN is written as null.
   """
   data = build_emergence(load_records(os.path.join(workdir, METRICS_FILE)), **kwargs)
-  _write_json_atomically(os.path.join(workdir, EMERGENCE_FILE), data)
+  write_json_atomically(os.path.join(workdir, EMERGENCE_FILE), data)
   return data
