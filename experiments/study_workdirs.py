@@ -37,11 +37,7 @@ def training_differences(saved: dict, config) -> dict:
   """{field: [saved, named]} for the fields, other than NOT_TRAINING, in which the run's saved
   config differs from `config`; a field the saved config lacks reads as base_config's value."""
   from slotlifter_jax import checkpoints
-  from slotlifter_jax import defaults
-  base = json.loads(defaults.base_config().to_json_best_effort())
-  filled = dict(base, **{k: dict(base.get(k, {}), **v) if isinstance(v, dict) else v
-                         for k, v in saved.items()})
-  return {field: values for field, values in checkpoints.config_changes(filled, config).items()
+  return {field: values for field, values in checkpoints.config_changes(saved, config).items()
           if field not in NOT_TRAINING}
 
 

@@ -128,7 +128,16 @@ def config_history_path(workdir: str) -> str:
 
 
 def config_changes(saved: dict, config: ml_collections.ConfigDict) -> dict:
-  """{'section.field': [saved, requested]} for every field whose value differs."""
+  """{'section.field': [saved, requested]} for every field whose value differs.
+
+  As in check_compatible, a field the saved config lacks reads as `defaults.base_config()`'s
+  value: the run predates the field and trained with the behaviour it defaults to, so it is no
+  change (a `[None, default]` entry would claim one).
+  """
+  from slotlifter_jax import defaults
+  base = json.loads(defaults.base_config().to_json_best_effort())
+  saved = {k: dict(base[k], **v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+           for k, v in dict(base, **saved).items()}
   current = json.loads(config.to_json_best_effort())
   changes = {}
   def walk(a: dict, b: dict, prefix: str):

@@ -402,6 +402,14 @@ def test_runs_saved_before_the_switches_still_load():
   ablated.model.density_mode = "mlp"
   with pytest.raises(ckpt_lib.CheckpointMismatchError, match="model.density_mode"):
     ckpt_lib.check_compatible(ablated, saved, "old_run")
+  # What evaluation records and a resume logs reads the missing fields the same way: no change
+  # where the request keeps the default, the saved default against the new value where not.
+  del saved["data"]["scene_stages"]
+  assert ckpt_lib.config_changes(saved, config) == {}
+  ablated.data.scene_stages = ((100, 4),)
+  assert ckpt_lib.config_changes(saved, ablated) == {
+      "model.density_mode": [config.model.density_mode, "mlp"],
+      "data.scene_stages": [[], [[100, 4]]]}
 
 
 def test_a_run_may_change_its_compute_dtype_but_not_its_shapes():
