@@ -287,6 +287,24 @@ def test_contrast_sampling_favours_pixels_far_from_the_median_colour():
                           novel_ray_prob=0.0, seed=1, ray_sampling="edges")
 
 
+def test_object_oversampling_against_a_hand_computed_case():
+  """experiments/ray_foreground_share.py's per-object factor. View 0: a light grey pixel (label 1)
+  on a mid-grey floor of 3 pixels; the median is the floor, so all contrast is on the object:
+  probability 0.5/4 + 0.5·1 = 2.5× uniform's 1/4. View 1: two red pixels (label 2) and two floor
+  pixels; the median lies halfway, every pixel is 0.2·√3 from it, so the red object is drawn as
+  often as under uniform sampling (1.0×)."""
+  import os
+  import sys
+  sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+  from experiments import ray_foreground_share
+  floor, light, red = (0.5, 0.5, 0.5), (0.9, 0.9, 0.9), (0.9, 0.1, 0.1)
+  images = np.array([[[floor, floor, floor, light]], [[floor, floor, red, red]]])  # [2, 1, 4, 3]
+  masks = np.array([[[0, 0, 0, 1]], [[0, 0, 2, 2]]])
+  factors = ray_foreground_share.object_oversampling(images, masks, mix=0.5)
+  np.testing.assert_allclose(factors["grey"], [2.5])
+  np.testing.assert_allclose(factors["coloured"], [1.0])
+
+
 def test_uniform_sampling_is_unchanged_by_the_contrast_option():
   scenes = [make_scene(f"s{i}", seed=i) for i in range(3)]
   a = sampler_for(scenes).draw(5)
