@@ -91,10 +91,11 @@ def paired_difference(base: dict[str, dict[str, float]], other: dict[str, dict[s
   a = np.array([base[s][metric] for s in scenes], np.float64)
   b = np.array([other[s][metric] for s in scenes], np.float64)
   both = np.isfinite(a) & np.isfinite(b)
-  diff = metrics.summarize(np.where(both, b - a, np.nan))  # the evaluation's own mean ± s.e.
+  d = (b - a)[both]
+  diff = metrics.summarize(d)  # the evaluation's own mean ± s.e.
   return {"base": metrics.summarize(a[both]).mean, "other": metrics.summarize(b[both]).mean,
           "difference": diff.mean, "stderr": diff.stderr, "scenes": diff.count,
-          "higher": int(np.sum((b - a)[both] > 0)), "lower": int(np.sum((b - a)[both] < 0))}
+          "higher": int(np.sum(d > 0)), "lower": int(np.sum(d < 0))}
 
 
 def _label(meta: dict, folder: str) -> str:

@@ -31,9 +31,8 @@ def object_oversampling(images: np.ndarray, masks: np.ndarray, *, mix: float) ->
   """{"grey": [...], "coloured": [...]}: per object and view, the mean over the object's pixels of
   contrast sampling's probability relative to uniform's 1 / (H·W). An object is grey when its mean
   colour's channels differ by < 0.05. images [N, H, W, 3] in [0, 1], masks [N, H, W] (0 background)."""
-  contrast = pipeline.pixel_contrast(images)  # [N, H·W]
-  pixels = contrast.shape[1]
-  ratio = (1.0 - mix) + mix * pixels * contrast / contrast.sum(axis=1, keepdims=True)
+  pixels = images.shape[1] * images.shape[2]
+  ratio = pixels * pipeline.mix_with_uniform(pipeline.contrast_weights(images), mix)  # [N, H·W]
   labels = masks.reshape(len(images), -1)
   colours = images.reshape(len(images), -1, 3)
   factors = {"grey": [], "coloured": []}

@@ -130,14 +130,10 @@ def config_history_path(workdir: str) -> str:
 def config_changes(saved: dict, config: ml_collections.ConfigDict) -> dict:
   """{'section.field': [saved, requested]} for every field whose value differs.
 
-  As in check_compatible, a field the saved config lacks reads as `defaults.base_config()`'s
-  value: the run predates the field and trained with the behaviour it defaults to, so it is no
-  change (a `[None, default]` entry would claim one).
+  A field the saved config lacks reads as its default (`_with_base_defaults`), so it is no change
+  (a `[None, default]` entry would claim one).
   """
-  from slotlifter_jax import defaults
-  base = json.loads(defaults.base_config().to_json_best_effort())
-  saved = {k: dict(base[k], **v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
-           for k, v in dict(base, **saved).items()}
+  saved = _with_base_defaults(saved)
   current = json.loads(config.to_json_best_effort())
   changes = {}
   def walk(a: dict, b: dict, prefix: str):
@@ -194,16 +190,16 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
   """
   if saved is None:
     return
-  from slotlifter_jax import defaults
-  current = json.loads(config.to_json_best_effort())
-  base = json.loads(defaults.base_config().to_json_best_effort())
+  saved = _with_base_defaults(saved)
+  current = _with_base_defaults(json.loads(config.to_json_best_effort()))
   fields = sorted({f"{section}.{k}" for section in ARCHITECTURE_FIELDS
-                   for cfg in (saved, current, base) for k in cfg.get(section, {})}
+                   for cfg in (saved, current) for k in cfg.get(section, {})}
                   - set(NOT_ARCHITECTURE))
   fields += [f for f in ALSO_ARCHITECTURE if f not in fields]
   diffs = []
   for field in fields:
-    a, b = _field(saved, field, base), _field(current, field, base)
+    section, key = field.split(".")
+    a, b = saved.get(section, {}).get(key), current.get(section, {}).get(key)
     if _normalise(a) != _normalise(b):
       diffs.append(f"{field}: saved {a!r}, requested {b!r}")
   if diffs:
@@ -212,10 +208,13 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
         + "\n  ".join(diffs))
 
 
-def _field(cfg: dict, field: str, base: dict) -> Any:
-  """`cfg`'s value of "section.key", or the base config's when `cfg` predates the field."""
-  section, key = field.split(".")
-  return cfg.get(section, {}).get(key, base.get(section, {}).get(key))
+def _with_base_defaults(cfg: dict) -> dict:
+  """`cfg` (a config as JSON) with every field it lacks set to `defaults.base_config()`'s value:
+  a run saved before a field was added trained with the behaviour the field defaults to."""
+  from slotlifter_jax import defaults
+  base = json.loads(defaults.base_config().to_json_best_effort())
+  return {k: dict(base[k], **v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+          for k, v in dict(base, **cfg).items()}
 
 
 def _normalise(v: Any):

@@ -1,6 +1,8 @@
 """The batch pipeline (docs/method.md §2): shapes, determinism from (seed, step), ray geometry, the
 75 % rule, nearest-source selection and the prefetch thread."""
 
+import os
+import sys
 import threading
 import time
 
@@ -14,6 +16,9 @@ from slotlifter_jax.data import cameras
 from slotlifter_jax.data import pipeline
 from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from experiments import ray_foreground_share  # noqa: E402
 
 H, W = 5, 7
 
@@ -293,10 +298,6 @@ def test_object_oversampling_against_a_hand_computed_case():
   probability 0.5/4 + 0.5·1 = 2.5× uniform's 1/4. View 1: two red pixels (label 2) and two floor
   pixels; the median lies halfway, every pixel is 0.2·√3 from it, so the red object is drawn as
   often as under uniform sampling (1.0×)."""
-  import os
-  import sys
-  sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-  from experiments import ray_foreground_share
   floor, light, red = (0.5, 0.5, 0.5), (0.9, 0.9, 0.9), (0.9, 0.1, 0.1)
   images = np.array([[[floor, floor, floor, light]], [[floor, floor, red, red]]])  # [2, 1, 4, 3]
   masks = np.array([[[0, 0, 0, 1]], [[0, 0, 2, 2]]])

@@ -74,6 +74,22 @@ def pixel_contrast(images: np.ndarray) -> np.ndarray:
   return np.linalg.norm(flat - median, axis=-1)  # [N, H·W]
 
 
+def contrast_weights(images: np.ndarray) -> np.ndarray:
+  """`pixel_contrast` normalised per view: [N, H, W, 3] → [N, H·W] float32, rows sum to 1. Each
+  view gets the same total mass, so a busy view does not crowd out the others; a view without
+  contrast is uniform."""
+  contrast = pixel_contrast(images)
+  total = contrast.sum(axis=1, keepdims=True)
+  return np.where(total > 0, contrast / np.maximum(total, 1e-12),
+                  1.0 / contrast.shape[1]).astype(np.float32)
+
+
+def mix_with_uniform(weights: np.ndarray, mix: float) -> np.ndarray:
+  """Contrast sampling's per-pixel probability: `mix` of the mass by `weights` [..., H·W] (rows
+  summing to 1), the rest uniform."""
+  return (1.0 - mix) / weights.shape[-1] + mix * weights
+
+
 def weighted_choice_without_replacement(rng: np.random.Generator, *, probs: np.ndarray,
                                         size: int) -> np.ndarray:
   """`size` distinct indices drawn one after another with probability ∝ probs among those left
@@ -241,13 +257,8 @@ class BatchSampler:
     if self.ray_sampling == "uniform":
       return rng.choice(len(views) * pixels, size=r, replace=False)
     if scene_idx not in self._contrast:
-      contrast = pixel_contrast(self.scenes[scene_idx].images)  # [N, H·W]
-      # Each view gets the same total mass, so a busy view does not crowd out the others.
-      total = contrast.sum(axis=1, keepdims=True)
-      self._contrast[scene_idx] = np.where(total > 0, contrast / np.maximum(total, 1e-12),
-                                           1.0 / pixels).astype(np.float32)
-    weights = self._contrast[scene_idx][views]  # [n, H·W], rows sum to 1
-    probs = (1.0 - self.contrast_mix) / pixels + self.contrast_mix * weights
+      self._contrast[scene_idx] = contrast_weights(self.scenes[scene_idx].images)
+    probs = mix_with_uniform(self._contrast[scene_idx][views], self.contrast_mix)
     return weighted_choice_without_replacement(rng, probs=probs.reshape(-1), size=r)
 
   def draw(self, step: int) -> BatchDraw:
