@@ -38,7 +38,7 @@ residual stream h and what leaves for volume rendering (W, A, σ, colour) are fl
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Optional
 
 import flax.linen as nn
 import flax.struct
@@ -110,13 +110,18 @@ def dot_product_attention(*, q: jax.Array, k: jax.Array, v: jax.Array) -> jax.Ar
   return jnp.einsum("...htl,...lhd->...thd", attn.astype(v.dtype), v)  # [..., T, H, dv]
 
 
-def locality_mask(*, logits: jax.Array, points: jax.Array, box: float, enabled) -> jax.Array:
+def locality_mask(*, logits: jax.Array, points: jax.Array, box: float, enabled,
+                  floor_z: Optional[float] = None) -> jax.Array:
   """Locality constraint (docs/method.md §1.4): outside the box only s_∅ and slot 1 take a point.
 
   logits [..., K+1], points [..., 3] in the normalised scene frame, `enabled` a (traced) bool.
   Where enabled and any |coordinate| > box, logits of slot indices ≥ 2 become MASKED_LOGIT.
+  floor_z (not in the paper): points with z < floor_z count as outside too, so the box's lower
+  face is the ground plane and slot 1 is the only real slot that can hold the floor.
   """
   outside = jnp.any(jnp.abs(points) > box, axis=-1, keepdims=True)  # [..., 1]
+  if floor_z is not None:
+    outside = jnp.logical_or(outside, points[..., 2:3] < floor_z)
   maskable = jnp.arange(logits.shape[-1]) >= 2  # [K+1]
   masked = jnp.logical_and(jnp.logical_and(enabled, outside), maskable)  # [..., K+1]
   return jnp.where(masked, jnp.asarray(MASKED_LOGIT, logits.dtype), logits)
@@ -325,6 +330,7 @@ class SlotDecoder(nn.Module):
   max_dropout: float = 0.2
   remat_scan: bool = False
   locality_box: float = 0.64
+  locality_floor_z: Optional[float] = None  # see `locality_mask`; None: the paper's box
   density_log_init: float = 0.0  # initial s_σ (official: 0)
   density_mode: str = "slot"  # "slot" | "mlp" (see the class docstring)
   dtype: Any = jnp.float32  # computation dtype (see the module docstring)
@@ -351,7 +357,8 @@ class SlotDecoder(nn.Module):
     # A (the logits) feeds the softmax W and the density's ReLU(A_k): float32 after the product.
     logits = jnp.einsum("brsc,bkc->brsk", q, k).astype(jnp.float32) / math.sqrt(
         self.width)  # [B, R, S, K+1]
-    logits = locality_mask(logits=logits, points=points, box=self.locality_box, enabled=locality)
+    logits = locality_mask(logits=logits, points=points, box=self.locality_box, enabled=locality,
+                           floor_z=self.locality_floor_z)
     weights = point_slot_weights(logits)
     mixed = jnp.einsum("brsk,bkd->brsd", weights.astype(self.dtype),
                        slots_all.astype(self.dtype))  # [B, R, S, Ds]: W·S'

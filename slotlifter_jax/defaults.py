@@ -41,6 +41,13 @@ def base_config() -> ml_collections.ConfigDict:
   m.density_scale = 25.0  # α = 1 − exp(−σ·δ·density_scale)
   m.density_log_init = 0.0  # initial value of the learned log density scale s_σ (official: 0)
   m.locality_box = 0.64  # |coordinate| beyond which only slots 0 and 1 may take a point
+  # Not in the paper: a ground-plane prior for sets whose floor is the plane z = 0 of the
+  # normalised frame (uORF sets, the embedded set). While the locality constraint holds, points
+  # below `locality_floor_z` also count as outside the box, so slot 1 is the only real slot that
+  # can hold the floor; the paper's box lets any slot take the floor inside it, where runs have
+  # shared it out among object slots (experiments/README.md, "Eighteenth round").
+  m.locality_floor = False
+  m.locality_floor_z = 0.01
   m.remat_scan = False  # nn.scan + nn.remat over the decoder blocks: less memory, more time
   # Computation dtype: "float32", or "bfloat16" for bf16 matmuls and convolutions with float32
   # parameters, softmaxes, norm statistics, volume rendering and loss (model.py, "Numerics";

@@ -173,6 +173,9 @@ class SlotLifter(nn.Module):
   colour_layers: int = 4
   colour_range: str = "unit"
   locality_box: float = 0.64
+  # Not the paper's: None, or the height below which points also count as outside the locality
+  # box (its lower face on the ground plane; decoder.locality_mask, defaults.py).
+  locality_floor_z: Optional[float] = None
   remat_scan: bool = False
   mask_shared_across_batch: bool = True
   # Ablations (docs/method.md §5); the defaults are the paper's method.
@@ -216,6 +219,7 @@ class SlotLifter(nn.Module):
             width=self.point_dim, num_blocks=self.num_blocks, num_heads=self.num_heads,
             self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim, max_dropout=self.max_dropout,
             remat_scan=self.remat_scan, locality_box=self.locality_box,
+            locality_floor_z=self.locality_floor_z,
             density_log_init=self.density_log_init, density_mode=self.density_mode,
             dtype=self.dtype, name=f"allocation{p}")
         for p in passes]
@@ -392,6 +396,7 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       colour_layers=int(m.colour_layers),
       colour_range=str(m.colour_range),
       locality_box=float(m.locality_box),
+      locality_floor_z=float(m.locality_floor_z) if m.get("locality_floor", False) else None,
       remat_scan=bool(m.remat_scan),
       density_scale=float(m.density_scale),
       density_log_init=float(m.density_log_init),
