@@ -71,6 +71,8 @@ METRIC_DEFINITIONS = {
     "attn_fg_ari": "FG-ARI of the slot attention alone on the source view(s): each pixel takes "
                    "the argmax slot of its nearest encoder feature cell (align-corners), the "
                    "grouping before any 3D point-slot mapping",
+    "attn_ari": "ARI of the slot attention alone on the source view(s) over all pixels, so the "
+                "background counts: low when slot attention shares the floor out among slots",
     "psnr_novel": "PSNR (dB, data range 1) of the novel views, mean of per-image PSNRs",
     "ssim": "SSIM of the novel views: Gaussian window 11, sigma 1.5, K1 0.01, K2 0.03, valid "
             "region only, after piq's average pooling by round(min(H, W)/256)",
@@ -198,6 +200,9 @@ def scene_metrics(rendered: views_lib.RenderedViews, scene: Scene, view_indices:
     attn_fg = metrics.fg_ari(true_labels=scene.masks[src].reshape(src.size, -1),
                              pred_labels=np.asarray(rendered.source_labels).reshape(src.size, -1))
     out["attn_fg_ari"] = _nan_mean(np.where(src_has_mask, attn_fg, np.nan))
+    attn_all = metrics.ari(true_labels=scene.masks[src].reshape(src.size, -1),
+                           pred_labels=np.asarray(rendered.source_labels).reshape(src.size, -1))
+    out["attn_ari"] = _nan_mean(np.where(src_has_mask, attn_all, np.nan))
   masked = np.flatnonzero(has_mask)
   if masked.size:
     # The whole scene as one long view, so the 1 % threshold is of the scene's foreground.

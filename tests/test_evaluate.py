@@ -114,6 +114,8 @@ def test_scene_metrics_splits_views_and_skips_as_the_protocol_says():
   assert out["attn_fg_ari"] == pytest.approx(
       _fg_ari(true[0], rendered.source_labels[0].ravel()))
   assert out["attn_fg_ari"] != pytest.approx(out["fg_ari"])
+  assert out["attn_ari"] == pytest.approx(
+      adjusted_rand_score(true[0], rendered.source_labels[0].ravel()))
   # View 2 has no mask: left out of every segmentation metric; view 4 has no foreground: left
   # out of FG-ARI only.
   assert out["nv_ari"] == pytest.approx(
