@@ -55,6 +55,11 @@ def head_lr(t, train_config):
                                                       decay_steps=c.decay_steps)
 
 
+def slot_attention_lr(t, train_config):
+  """Slot attention's learning rate at step t: the backbone's times `slot_attention_lr_scale`."""
+  return backbone_lr(t, train_config) * train_config.get("slot_attention_lr_scale", 1.0)
+
+
 def _cosine_to_zero(t, steps: int):
   """1 at t = 0, cosine down to 0 at t = steps, 0 afterwards."""
   t = jnp.asarray(t, jnp.float32)
@@ -104,9 +109,11 @@ def locality_on(t, *, steps: int):
 def all_schedules(t, train_config) -> dict:
   """The schedule values for step t, as reported in the training metrics."""
   c = train_config
+  rates = dict(lr_backbone=backbone_lr(t, c), lr_head=head_lr(t, c))
+  if c.get("slot_attention_lr_scale", 1.0) != 1.0:
+    rates["lr_slot_attention"] = slot_attention_lr(t, c)
   return dict(
-      lr_backbone=backbone_lr(t, c),
-      lr_head=head_lr(t, c),
+      **rates,
       keep_ratio=keep_ratio(t, mask_max=c.mask_max, anneal_steps=c.mask_anneal_steps,
                             mask_min=c.get("mask_min", 0.0),
                             mask_min_steps=c.get("mask_min_steps", 0),

@@ -32,6 +32,9 @@ RAY_KEYS = ("ray_origins", "ray_directions", "target_rgb")
 # Parameters of these submodules follow the head schedule (no warm-up); everything else follows the
 # backbone schedule (docs/method.md §2).
 HEAD_MODULE_PREFIXES = model_lib.HEAD_MODULE_PREFIXES
+# With train.slot_attention_lr_scale ≠ 1 these follow their own schedule (schedules.py). A third
+# group only then, so the optimiser state of runs without it keeps its structure.
+SLOT_ATTENTION_MODULE_PREFIXES = ("slot_attention", "slot_pos_proj")
 
 
 @flax.struct.dataclass
@@ -43,11 +46,16 @@ class TrainState:
   nonfinite_total: jax.Array  # int32 scalar
 
 
-def param_groups(params) -> Any:
-  """'head' or 'backbone' for every leaf, from the name of its top-level submodule."""
+def param_groups(params, *, split_slot_attention: bool = False) -> Any:
+  """'head' or 'backbone' for every leaf, from the name of its top-level submodule; with
+  `split_slot_attention`, 'slot_attention' for slot attention's (own schedule)."""
   def label(path, _):
     top = str(getattr(path[0], "key", path[0]))
-    return "head" if top.startswith(HEAD_MODULE_PREFIXES) else "backbone"
+    if top.startswith(HEAD_MODULE_PREFIXES):
+      return "head"
+    if split_slot_attention and top.startswith(SLOT_ATTENTION_MODULE_PREFIXES):
+      return "slot_attention"
+    return "backbone"
   return jax.tree_util.tree_map_with_path(label, params)
 
 
@@ -65,9 +73,13 @@ def make_optimizer(train_config) -> optax.GradientTransformation:
   if c.optimizer not in optimizers:
     raise ValueError(f"train.optimizer is {c.optimizer!r}; use one of {sorted(optimizers)}")
   make = optimizers[c.optimizer]
+  groups = {"backbone": make(backbone_lr), "head": make(head_lr)}
+  split = c.get("slot_attention_lr_scale", 1.0) != 1.0
+  if split:
+    groups["slot_attention"] = make(lambda t: schedules.slot_attention_lr(t, c))
   return optax.chain(
       optax.clip_by_global_norm(c.grad_clip),
-      optax.multi_transform({"backbone": make(backbone_lr), "head": make(head_lr)}, param_groups),
+      optax.multi_transform(groups, lambda p: param_groups(p, split_slot_attention=split)),
   )
 
 

@@ -115,6 +115,36 @@ def test_optimizer_matches_optax_with_each_group_schedule(name):
     train_step.make_optimizer(c)
 
 
+def test_slot_attention_follows_the_backbone_rate_times_its_scale():
+  import jax
+  import jax.numpy as jnp
+  import optax
+  from slotlifter_jax import train_step
+
+  c = defaults.base_config().train
+  c.warmup_steps, c.decay_steps, c.slot_attention_lr_scale = 3, 7, 0.5
+  params = {"colour_mlp": {"w": jnp.arange(5.0)}, "encoder": {"w": -jnp.arange(3.0)},
+            "slot_attention": {"w": jnp.array([0.5, -2.0])}}
+  grads = {"colour_mlp": {"w": jnp.linspace(-2, 3, 5)}, "encoder": {"w": jnp.array([4.0, -1, 2])},
+           "slot_attention": {"w": jnp.array([-1.0, 3.0])}}
+  tx = train_step.make_optimizer(c)
+  state = tx.init(params)
+  clipped = optax.clip_by_global_norm(c.grad_clip).update(grads, optax.EmptyState())[0]
+  backbone = c.base_lr * float(schedules.backbone_lr_factor(
+      0, floor=c.lr_floor, warmup_steps=c.warmup_steps, decay_steps=c.decay_steps))
+  head = c.base_lr * float(schedules.head_lr_factor(0, floor=c.lr_floor, decay_steps=c.decay_steps))
+  got, _ = tx.update(grads, state, params)
+  for group, lr in (("colour_mlp", head), ("encoder", backbone), ("slot_attention", 0.5 * backbone)):
+    ref = optax.lion(lr, b1=c.b1, b2=c.b2, weight_decay=c.weight_decay)
+    expected, _ = ref.update(clipped[group], ref.init(params[group]), params[group])
+    np.testing.assert_allclose(got[group]["w"], expected["w"], rtol=1e-6, atol=1e-12)
+  s = schedules.all_schedules(0, c)
+  assert s["lr_slot_attention"] == pytest.approx(0.5 * backbone, rel=1e-6)
+  c.slot_attention_lr_scale = 1.0  # the paper's: one backbone group, nothing extra logged
+  assert "lr_slot_attention" not in schedules.all_schedules(0, c)
+  assert set(jax.tree.leaves(train_step.param_groups(params))) == {"head", "backbone"}
+
+
 @pytest.mark.parametrize("t, expected", [
     (0, 1.0), (49_999, 1.0),  # full rate until the cooldown starts…
     (50_000, 1.0),  # …and the cosine starts at 1: no jump

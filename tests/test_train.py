@@ -61,6 +61,11 @@ def test_param_groups_split_head_from_backbone():
   for g, x in zip(groups, jax.tree.leaves(state.params)):
     sizes[g] += x.size
   assert sizes["head"] < sizes["backbone"]
+  # With its own schedule, slot attention's parameters (and only they) form a third group.
+  split = step_lib.param_groups(state.params, split_slot_attention=True)
+  assert set(jax.tree.leaves(split["slot_attention"])) == {"slot_attention"}
+  assert "slot_attention" not in {g for k, v in split.items() if k != "slot_attention"
+                                  for g in jax.tree.leaves(v)}
 
 
 def test_step_learns_and_nan_batch_is_skipped():
