@@ -197,12 +197,10 @@ def scene_metrics(rendered: views_lib.RenderedViews, scene: Scene, view_indices:
     raise ValueError(f"scene {scene.name}: {np.shape(rendered.source_labels)[0]} source views "
                      f"rendered, but the scene names {src.size} (source_indices {tuple(src)})")
   if src_has_mask.any():
-    attn_fg = metrics.fg_ari(true_labels=scene.masks[src].reshape(src.size, -1),
-                             pred_labels=np.asarray(rendered.source_labels).reshape(src.size, -1))
-    out["attn_fg_ari"] = _nan_mean(np.where(src_has_mask, attn_fg, np.nan))
-    attn_all = metrics.ari(true_labels=scene.masks[src].reshape(src.size, -1),
-                           pred_labels=np.asarray(rendered.source_labels).reshape(src.size, -1))
-    out["attn_ari"] = _nan_mean(np.where(src_has_mask, attn_all, np.nan))
+    attn = dict(true_labels=scene.masks[src].reshape(src.size, -1),
+                pred_labels=np.asarray(rendered.source_labels).reshape(src.size, -1))
+    out["attn_fg_ari"] = _nan_mean(np.where(src_has_mask, metrics.fg_ari(**attn), np.nan))
+    out["attn_ari"] = _nan_mean(np.where(src_has_mask, metrics.ari(**attn), np.nan))
   masked = np.flatnonzero(has_mask)
   if masked.size:
     # The whole scene as one long view, so the 1 % threshold is of the scene's foreground.

@@ -81,6 +81,9 @@ from slotlifter_jax.slot_attention import SlotAttention, position_grid
 # colour MLP, lifting Linear, positional Linear); everything else is "backbone". Prefixes, so the
 # fine pass's `colour_mlp_fine` and `lift_proj_fine` are included.
 HEAD_MODULE_PREFIXES = ("colour_mlp", "lift_proj", "pos_proj")
+# Slot attention's submodules (its input embedding included): a third schedule when
+# train.slot_attention_lr_scale ≠ 1 (schedules.has_slot_attention_group).
+SLOT_ATTENTION_MODULE_PREFIXES = ("slot_attention", "slot_pos_proj")
 
 # `model.dtype` values → the computation dtype (module docstring, "Numerics").
 COMPUTE_DTYPES = {"float32": jnp.float32, "bfloat16": jnp.bfloat16}

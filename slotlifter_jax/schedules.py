@@ -55,6 +55,11 @@ def head_lr(t, train_config):
                                                       decay_steps=c.decay_steps)
 
 
+def has_slot_attention_group(train_config) -> bool:
+  """Whether slot attention has a rate of its own (optimiser group and logged `lr_slot_attention`)."""
+  return train_config.get("slot_attention_lr_scale", 1.0) != 1.0
+
+
 def slot_attention_lr(t, train_config):
   """Slot attention's learning rate at step t: the backbone's times `slot_attention_lr_scale`."""
   return backbone_lr(t, train_config) * train_config.get("slot_attention_lr_scale", 1.0)
@@ -110,7 +115,7 @@ def all_schedules(t, train_config) -> dict:
   """The schedule values for step t, as reported in the training metrics."""
   c = train_config
   rates = dict(lr_backbone=backbone_lr(t, c), lr_head=head_lr(t, c))
-  if c.get("slot_attention_lr_scale", 1.0) != 1.0:
+  if has_slot_attention_group(c):
     rates["lr_slot_attention"] = slot_attention_lr(t, c)
   return dict(
       **rates,

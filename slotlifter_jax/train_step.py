@@ -32,9 +32,9 @@ RAY_KEYS = ("ray_origins", "ray_directions", "target_rgb")
 # Parameters of these submodules follow the head schedule (no warm-up); everything else follows the
 # backbone schedule (docs/method.md §2).
 HEAD_MODULE_PREFIXES = model_lib.HEAD_MODULE_PREFIXES
-# With train.slot_attention_lr_scale ≠ 1 these follow their own schedule (schedules.py). A third
-# group only then, so the optimiser state of runs without it keeps its structure.
-SLOT_ATTENTION_MODULE_PREFIXES = ("slot_attention", "slot_pos_proj")
+# With train.slot_attention_lr_scale ≠ 1 these follow their own schedule. A third group only then,
+# so the optimiser state of runs without it keeps its structure.
+SLOT_ATTENTION_MODULE_PREFIXES = model_lib.SLOT_ATTENTION_MODULE_PREFIXES
 
 
 @flax.struct.dataclass
@@ -74,7 +74,7 @@ def make_optimizer(train_config) -> optax.GradientTransformation:
     raise ValueError(f"train.optimizer is {c.optimizer!r}; use one of {sorted(optimizers)}")
   make = optimizers[c.optimizer]
   groups = {"backbone": make(backbone_lr), "head": make(head_lr)}
-  split = c.get("slot_attention_lr_scale", 1.0) != 1.0
+  split = schedules.has_slot_attention_group(c)
   if split:
     groups["slot_attention"] = make(lambda t: schedules.slot_attention_lr(t, c))
   return optax.chain(
