@@ -127,7 +127,8 @@ def _check_masking(train_config) -> None:
                       f"be ≥ 0 (0 releases the floor at once)")
 
 
-def _check_cooldown(train_config) -> None:
+def _check_rates(train_config) -> None:
+  """The cooldown's length and final factor, and slot attention's rate scale."""
   steps = int(train_config.get("lr_cooldown_steps", 0))
   if not 0 <= steps <= int(train_config.num_steps):
     raise ConfigError(f"train.lr_cooldown_steps={steps} must lie in [0, train.num_steps="
@@ -135,6 +136,9 @@ def _check_cooldown(train_config) -> None:
   final = float(train_config.get("lr_cooldown_final", 0.1))
   if not 0.0 <= final <= 1.0:
     raise ConfigError(f"train.lr_cooldown_final={final} must lie in [0, 1]")
+  scale = float(train_config.get("slot_attention_lr_scale", 1.0))
+  if not scale >= 0.0:  # also NaN: a negative rate would climb the loss
+    raise ConfigError(f"train.slot_attention_lr_scale={scale} must be ≥ 0")
 
 
 def _check_selection(train_config) -> None:
@@ -260,7 +264,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   if os.path.exists(workdir) and not os.path.isdir(workdir):
     raise FileExistsError(f"{workdir}: exists and is not a directory; choose another --workdir")
   _check_masking(config.train)
-  _check_cooldown(config.train)
+  _check_rates(config.train)
   _check_selection(config.train)
   saved = ckpt_lib.load_saved_config(workdir)
   ckpt_lib.check_compatible(config, saved, workdir)

@@ -138,6 +138,8 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
      "train.lr_cooldown_steps=7 must lie in [0, train.num_steps=6]"),
     (["--config=configs/clevr.py:smoke", "--config.train.lr_cooldown_final=1.5"],
      "train.lr_cooldown_final=1.5 must lie in [0, 1]"),
+    (["--config=configs/clevr.py:smoke", "--config.train.slot_attention_lr_scale=-0.5"],
+     "train.slot_attention_lr_scale=-0.5 must be ≥ 0"),
     (["--config=configs/clevr.py:smoke", "--config.data.scene_stages=((0,2),(3,9))"],
      "data.scene_stages: 9 (stage from step 3) must lie in [1, 4]"),
     (["--config=configs/clevr.py:smoke", "--config.train.ray_stages=((3,8),)",
