@@ -48,6 +48,10 @@ def base_config() -> ml_collections.ConfigDict:
   # shared it out among object slots (experiments/README.md, "Eighteenth round").
   m.locality_floor = False
   m.locality_floor_z = 0.01
+  # Not the paper's: while the locality constraint holds, source-view feature cells whose ray
+  # never enters the locality box go to slot attention's first slot only, the one the decoder
+  # keeps for points outside the box (docs/method.md §1.4).
+  m.locality_attention = False
   m.remat_scan = False  # nn.scan + nn.remat over the decoder blocks: less memory, more time
   # Computation dtype: "float32", or "bfloat16" for bf16 matmuls and convolutions with float32
   # parameters, softmaxes, norm statistics, volume rendering and loss (model.py, "Numerics";

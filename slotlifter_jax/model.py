@@ -179,6 +179,9 @@ class SlotLifter(nn.Module):
   # Not the paper's: None, or the height below which points also count as outside the locality
   # box (its lower face on the ground plane; decoder.locality_mask, defaults.py).
   locality_floor_z: Optional[float] = None
+  # Not the paper's: while the locality constraint holds, source-view feature cells whose ray
+  # never enters the locality box go to slot attention's first slot only (`background_cells`).
+  locality_attention: bool = False
   remat_scan: bool = False
   mask_shared_across_batch: bool = True
   # Ablations (docs/method.md §5); the defaults are the paper's method.
@@ -232,11 +235,34 @@ class SlotLifter(nn.Module):
                               name=f"colour_mlp{p}")
         for p in passes]
 
+  def background_cells(self, *, source_cam_to_world: jax.Array, source_intrinsics: jax.Array,
+                       image_size: tuple[int, int], feature_size: tuple[int, int]) -> jax.Array:
+    """[B, V, h, w] bool: feature cells whose ray crosses no part of the locality box between the
+    ray's near and far bounds (`ray_interval`).
+
+    Every point rendered along such a ray lies outside the box, so while the locality constraint
+    holds the decoder gives all of it to slot 1 (or to s_∅): the cell's segment can only be slot 1.
+    `locality_attention` tells slot attention the same about the source view. A cell (i, j) is the
+    pixel (j·(W−1)/(w−1), i·(H−1)/(h−1)), the align-corners convention of feature lifting.
+    """
+    (height, width), (h, w) = image_size, feature_size
+    v_pix, u_pix = jnp.meshgrid(jnp.linspace(0.0, height - 1.0, h),
+                                jnp.linspace(0.0, width - 1.0, w), indexing="ij")
+    rays = geometry.pixel_rays(cam_to_world=source_cam_to_world[:, :, None, None],
+                               intrinsics=source_intrinsics[:, :, None, None],
+                               pix=jnp.stack([u_pix, v_pix], axis=-1))  # [B, V, h, w, 3] each
+    near, far = self.ray_interval(rays.origins, rays.directions)
+    return geometry.ray_misses_box(origins=rays.origins, directions=rays.directions, near=near,
+                                   far=far, half_size=self.locality_box)
+
   def encode(self, *, source_images: jax.Array, source_cam_to_world: jax.Array,
-             source_intrinsics: jax.Array, slot_noise_sigma=0.0, train: bool) -> Encoded:
+             source_intrinsics: jax.Array, slot_noise_sigma=0.0, locality=False,
+             train: bool) -> Encoded:
     """Source views [B, V, H, W, 3] (as given: the caller maps DTU images to [−1, 1]) → slots.
 
     slot_noise_sigma: the (traced) σ of the slot initialisation noise; only used when `train`.
+    locality: (traced) bool, whether the locality constraint holds; it reaches slot attention
+    only with `locality_attention`.
     """
     b, v, height, width, _ = source_images.shape
     x = encoder_input(images=source_images, cam_to_world=source_cam_to_world,
@@ -251,7 +277,14 @@ class SlotLifter(nn.Module):
       # features match (two red objects); the lifted features stay as the paper's.
       slot_inputs = feats + self.slot_pos_proj(position_grid(*feats.shape[2:4]))  # [B, V, h, w, D]
     flat = slot_inputs.reshape(b, -1, feats.shape[-1])  # [B, V·h·w, D]: all views (§1.2)
-    result = self.slot_attention(flat, noise_sigma=slot_noise_sigma, train=train)
+    background_only = None
+    if self.locality_attention:
+      cells = self.background_cells(source_cam_to_world=source_cam_to_world,
+                                    source_intrinsics=source_intrinsics,
+                                    image_size=(height, width), feature_size=feats.shape[2:4])
+      background_only = jnp.logical_and(locality, cells.reshape(b, -1))  # [B, V·h·w]
+    result = self.slot_attention(flat, noise_sigma=slot_noise_sigma, train=train,
+                                 background_only=background_only)
     return Encoded(features=feats, slots=result.slots, slot_attn=result.attn)
 
   def _render_pass(self, index: int, encoded: Encoded, *, source_images, source_cam_to_world,
@@ -366,7 +399,8 @@ class SlotLifter(nn.Module):
     """encode + render_rays on the same scenes (the training forward pass)."""
     sources = dict(source_images=source_images, source_cam_to_world=source_cam_to_world,
                    source_intrinsics=source_intrinsics)
-    encoded = self.encode(**sources, slot_noise_sigma=slot_noise_sigma, train=train)
+    encoded = self.encode(**sources, slot_noise_sigma=slot_noise_sigma, locality=locality,
+                          train=train)
     out = self.render_rays(encoded, **sources, ray_origins=ray_origins,
                            ray_directions=ray_directions, keep_ratio=keep_ratio,
                            locality=locality, train=train)
@@ -400,6 +434,7 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       colour_range=str(m.colour_range),
       locality_box=float(m.locality_box),
       locality_floor_z=float(m.locality_floor_z) if m.get("locality_floor", False) else None,
+      locality_attention=bool(m.get("locality_attention", False)),
       remat_scan=bool(m.remat_scan),
       density_scale=float(m.density_scale),
       density_log_init=float(m.density_log_init),
