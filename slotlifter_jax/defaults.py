@@ -50,7 +50,8 @@ def base_config() -> ml_collections.ConfigDict:
   m.locality_floor_z = 0.01
   # Not the paper's: while the locality constraint holds, source-view feature cells whose ray
   # never enters the locality box go to slot attention's first slot only, the one the decoder
-  # keeps for points outside the box (docs/method.md §1.4).
+  # keeps for points outside the box (docs/method.md §1.4). Off: it splits seed 3 at 1e-4 and
+  # collapses seed 1 into that slot (experiments/README.md, "Nineteenth round").
   m.locality_attention = False
   m.remat_scan = False  # nn.scan + nn.remat over the decoder blocks: less memory, more time
   # Computation dtype: "float32", or "bfloat16" for bf16 matmuls and convolutions with float32
