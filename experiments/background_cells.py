@@ -15,7 +15,7 @@ import argparse
 import os
 import sys
 
-import jax.numpy as jnp
+import jax
 import numpy as np
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -25,9 +25,14 @@ from experiments import study_common  # noqa: E402
 from slotlifter_jax import model as model_lib  # noqa: E402
 from slotlifter_jax.data import embedded  # noqa: E402
 from slotlifter_jax.data import registry  # noqa: E402
+from slotlifter_jax.rendering import views as views_lib  # noqa: E402
 
-# The encoder's output stride (encoder.ResUNet): features are H/4 × W/4.
-FEATURE_STRIDE = 4
+
+def feature_size(model, sources: dict) -> tuple[int, int]:
+  """The (h, w) of the encoder's feature maps for these source views, from shapes alone."""
+  encoded = jax.eval_shape(lambda: model.init_with_output(
+      jax.random.key(0), **sources, train=False, method=model.encode)[0])
+  return tuple(encoded.features.shape[2:4])
 
 
 def cell_pixels(size: int, cells: int) -> np.ndarray:
@@ -43,17 +48,18 @@ def main():
   config = embedded.resolve_data(study_common.load_config(args.config))
   scenes = registry.load_split(config.data, "val", max_scenes=args.scenes)
   model = model_lib.build_model(config)
+  signed = config.model.colour_range == "signed"
   shares, on_objects = [], []
   for scene in scenes:
     idx = np.asarray(scene.source_indices)
     height, width = scene.images.shape[1:3]
-    feature_size = (height // FEATURE_STRIDE, width // FEATURE_STRIDE)
+    sources = views_lib.scene_sources(scene, signed=signed)
+    h, w = feature_size(model, sources)
     cells = np.asarray(model.apply(
-        {}, source_cam_to_world=jnp.asarray(scene.cam_to_world[idx][None], jnp.float32),
-        source_intrinsics=jnp.asarray(scene.intrinsics[idx][None], jnp.float32),
-        image_size=(height, width), feature_size=feature_size,
-        method=model.background_cells))[0]  # [V, h, w]
-    rows, cols = cell_pixels(height, feature_size[0]), cell_pixels(width, feature_size[1])
+        {}, source_cam_to_world=sources["source_cam_to_world"],
+        source_intrinsics=sources["source_intrinsics"], image_size=(height, width),
+        feature_size=(h, w), method=model.background_cells))[0]  # [V, h, w]
+    rows, cols = cell_pixels(height, h), cell_pixels(width, w)
     labels = scene.masks[idx][:, rows][:, :, cols]  # [V, h, w]
     shares.append(cells.mean())
     on_objects.append((labels[cells] > 0).mean() if cells.any() else 0.0)

@@ -166,6 +166,18 @@ def stratified_depths(*, near, far, num_samples: int, batch_shape: Sequence[int]
   return near + step * index  # [..., S]
 
 
+def _slab_crossing(o: jax.Array, d: jax.Array, *, lower, upper) -> tuple[jax.Array, jax.Array]:
+  """The t interval [t_lo, t_hi] in which o + t·d lies in [lower, upper], per coordinate
+  (elementwise; empty when t_lo > t_hi). A ray parallel to the slab is in it for all t or none."""
+  flat = jnp.abs(d) < 1e-9
+  safe = jnp.where(flat, 1.0, d)
+  t1, t2 = (lower - o) / safe, (upper - o) / safe
+  inside = (o >= lower) & (o <= upper)
+  t_lo = jnp.where(flat, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(t1, t2))
+  t_hi = jnp.where(flat, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(t1, t2))
+  return t_lo, t_hi
+
+
 def slab_interval(*, origins: jax.Array, directions: jax.Array, near, far, z_min: float,
                   z_max: float) -> tuple[jax.Array, jax.Array]:
   """Each ray's part of [near, far] inside the horizontal slab z_min ≤ z ≤ z_max (world frame).
@@ -183,13 +195,8 @@ def slab_interval(*, origins: jax.Array, directions: jax.Array, near, far, z_min
   Returns:
     (near, far), each [...]: near ≤ far, both inside the scalar [near, far].
   """
-  oz, dz = origins[..., 2], directions[..., 2]
-  flat = jnp.abs(dz) < 1e-9  # parallel to the slab: all of it or none of it
-  safe = jnp.where(flat, 1.0, dz)
-  t1, t2 = (z_min - oz) / safe, (z_max - oz) / safe
-  inside = (oz >= z_min) & (oz <= z_max)
-  t_lo = jnp.where(flat, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(t1, t2))
-  t_hi = jnp.where(flat, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(t1, t2))
+  oz = origins[..., 2]
+  t_lo, t_hi = _slab_crossing(oz, directions[..., 2], lower=z_min, upper=z_max)
   lo = jnp.maximum(t_lo, near)
   hi = jnp.minimum(t_hi, far)
   miss = hi <= lo
@@ -214,12 +221,7 @@ def ray_misses_box(*, origins: jax.Array, directions: jax.Array, near, far,
   Returns:
     [...] bool, True where no point of the segment lies in the closed cube.
   """
-  flat = jnp.abs(directions) < 1e-9  # parallel to that axis's slab: inside always or never
-  safe = jnp.where(flat, 1.0, directions)
-  t1, t2 = (-half_size - origins) / safe, (half_size - origins) / safe
-  inside = jnp.abs(origins) <= half_size
-  t_lo = jnp.where(flat, jnp.where(inside, -jnp.inf, jnp.inf), jnp.minimum(t1, t2))
-  t_hi = jnp.where(flat, jnp.where(inside, jnp.inf, -jnp.inf), jnp.maximum(t1, t2))
+  t_lo, t_hi = _slab_crossing(origins, directions, lower=-half_size, upper=half_size)  # [..., 3]
   lo = jnp.maximum(jnp.max(t_lo, axis=-1), near)
   hi = jnp.minimum(jnp.min(t_hi, axis=-1), far)
   return hi < lo
