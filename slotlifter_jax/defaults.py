@@ -176,6 +176,9 @@ def base_config() -> ml_collections.ConfigDict:
   t.select_by = "nv_ari"
   t.noise_anneal_steps = 30_000  # slot init noise σ 1 → 0
   t.locality_steps = 50_000  # locality constraint on for the first N steps (0: never)
+  # With `model.locality_attention`: slot attention applies its side of the constraint only from
+  # this step on (0: from the start), up to `locality_steps`.
+  t.locality_attention_start = 0
   t.max_nonfinite_in_row = 20
   # Restart a run that validation flags as collapsed (after the masking and slot-noise schedules)
   # from the next seed, at most this many times; the collapsed attempt is kept under collapsed/.

@@ -394,13 +394,19 @@ class SlotLifter(nn.Module):
 
   def __call__(self, *, source_images: jax.Array, source_cam_to_world: jax.Array,
                source_intrinsics: jax.Array, ray_origins: jax.Array, ray_directions: jax.Array,
-               slot_noise_sigma=0.0, keep_ratio=1.0, locality=False,
+               slot_noise_sigma=0.0, keep_ratio=1.0, locality=False, attention_locality=None,
                train: bool) -> ModelOutput:
-    """encode + render_rays on the same scenes (the training forward pass)."""
+    """encode + render_rays on the same scenes (the training forward pass).
+
+    attention_locality: (traced) bool for slot attention's side of the locality constraint
+    (`locality_attention`); None: the same as `locality`.
+    """
     sources = dict(source_images=source_images, source_cam_to_world=source_cam_to_world,
                    source_intrinsics=source_intrinsics)
-    encoded = self.encode(**sources, slot_noise_sigma=slot_noise_sigma, locality=locality,
-                          train=train)
+    if attention_locality is None:
+      attention_locality = locality
+    encoded = self.encode(**sources, slot_noise_sigma=slot_noise_sigma,
+                          locality=attention_locality, train=train)
     out = self.render_rays(encoded, **sources, ray_origins=ray_origins,
                            ray_directions=ray_directions, keep_ratio=keep_ratio,
                            locality=locality, train=train)

@@ -146,3 +146,51 @@ def test_the_config_switch_reaches_the_model_and_is_off_by_default():
   assert model_lib.build_model(config).locality_attention is False
   config.model.locality_attention = True
   assert model_lib.build_model(config).locality_attention is True
+
+
+def test_attention_locality_starts_at_its_step_and_ends_with_the_constraint():
+  from slotlifter_jax import schedules
+  on = lambda t: bool(schedules.attention_locality_on(t, locality_steps=20_000, start=6000))
+  assert [on(t) for t in (0, 5999, 6000, 19_999, 20_000)] == [False, False, True, True, False]
+  assert bool(schedules.attention_locality_on(0, locality_steps=20_000, start=0))
+  assert not bool(schedules.attention_locality_on(0, locality_steps=0, start=0))
+
+
+def test_the_train_step_hands_slot_attention_its_own_switch():
+  """The gradient function's loss with the locality constraint on in the decoder: slot attention
+  held (`attention_locality` on) differs from free, and free equals a model without
+  `locality_attention`, so the switch reaches slot attention and nothing else."""
+  from slotlifter_jax import defaults
+  from slotlifter_jax import schedules
+  from slotlifter_jax import train_step as step_lib
+  config = defaults.base_config()
+  defaults.smoke(config)
+  config.model.locality_attention = True
+  s, b, r = config.data.image_size, 1, 16
+  c2w = _look_down_camera(3.0).astype(np.float32)
+  intr = np.array([[s, 0, (s - 1) / 2], [0, s, (s - 1) / 2], [0, 0, 1]], np.float32)
+  rng = np.random.default_rng(3)
+  dirs = rng.normal(size=(b, r, 3)) * [0.2, 0.2, 0.0] + [0, 0, -1]
+  batch = dict(
+      source_images=rng.uniform(size=(b, 1, s, s, 3)).astype(np.float32),
+      source_cam_to_world=np.broadcast_to(c2w, (b, 1, 4, 4)).copy(),
+      source_intrinsics=np.broadcast_to(intr, (b, 1, 3, 3)).copy(),
+      ray_origins=np.broadcast_to(c2w[:3, 3], (b, r, 3)).astype(np.float32).copy(),
+      ray_directions=(dirs / np.linalg.norm(dirs, axis=-1, keepdims=True)).astype(np.float32),
+      target_rgb=rng.uniform(size=(b, r, 3)).astype(np.float32))
+  held_model = model_lib.build_model(config)
+  config.model.locality_attention = False
+  plain_model = model_lib.build_model(config)
+  cells = held_model.apply({}, source_cam_to_world=jnp.asarray(batch["source_cam_to_world"]),
+                           source_intrinsics=jnp.asarray(batch["source_intrinsics"]),
+                           image_size=(s, s), feature_size=(s // 4, s // 4),
+                           method=held_model.background_cells)
+  assert np.asarray(cells).any()
+  params = step_lib.init_state(held_model, config, batch, _key(0)).params
+  sched = dict(schedules.all_schedules(0, config.train), locality=jnp.asarray(True))
+  loss = lambda model, held: float(jit(step_lib.make_grad_fn(model, config))(
+      params, batch, _key(1), dict(sched, attention_locality=jnp.asarray(held)))[0][0])
+  free = loss(held_model, False)
+  # Equal up to float32 rounding: the two models compile to different programs.
+  np.testing.assert_allclose(free, loss(plain_model, False), rtol=1e-6)
+  assert abs(loss(held_model, True) - free) > 1e-4 * free

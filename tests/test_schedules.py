@@ -77,7 +77,8 @@ def test_endpoints_and_locality():
 def test_all_schedules_reports_every_value():
   c = defaults.base_config().train
   s = schedules.all_schedules(12_345, c)
-  assert set(s) == {"lr_backbone", "lr_head", "keep_ratio", "slot_noise_sigma", "locality"}
+  assert set(s) == {"lr_backbone", "lr_head", "keep_ratio", "slot_noise_sigma", "locality",
+                    "attention_locality"}
   np.testing.assert_allclose(s["lr_head"], 5e-5 * (0.02 + 0.98 * 0.5 ** (12_345 / 50_000)),
                              rtol=1e-5)
 
