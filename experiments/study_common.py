@@ -34,7 +34,7 @@ Recorded per run (the CSV's columns, METRIC_KEYS and below):
   psnr_novel, ari, fg_ari, nv_ari, nv_fg_ari, active_slots, …  evaluate_split's means over scenes
   collapsed          1/0: the last validation of the run flags collapse (train.py writes
                      `collapsed` into DIR/metrics.jsonl), counted only once the masking and noise
-                     schedules have settled (train.collapse_settled_step); NaN without validation
+                     schedules have settled (collapse.settled_step); NaN without validation
 
 Nothing here imports JAX at module level, so a script can re-execute itself with the allocator of
 `slotlifter_jax.runtime` first (as experiments/bench.py does).
@@ -366,7 +366,8 @@ def execute(run: Run, *, root: str = DEFAULT_ROOT, study: str = "", eval_split: 
       upsert_csv(csv_path, [row])
     return row
 
-  from slotlifter_jax import evaluate  # JAX only from here on
+  from slotlifter_jax import collapse  # JAX only from here on
+  from slotlifter_jax import evaluate
   from slotlifter_jax import train
   from slotlifter_jax.data import embedded
   os.makedirs(run_dir, exist_ok=True)
@@ -399,7 +400,7 @@ def execute(run: Run, *, root: str = DEFAULT_ROOT, study: str = "", eval_split: 
       render_per_view_s=result.timing["render_per_view_s"], eval_s=result.timing["total_s"])
   for k in METRIC_KEYS:
     row[k] = float(result.summary[k].mean) if k in result.summary else math.nan
-  row.update(collapse_record(val_records, train.collapse_settled_step(config.train)))
+  row.update(collapse_record(val_records, collapse.settled_step(config.train)))
   _write_json(done_path, row)
   if csv_path:
     upsert_csv(csv_path, [row])

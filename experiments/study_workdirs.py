@@ -96,7 +96,7 @@ def workdir_row(run_dir: str, config, *, config_spec: str, study: str, name: str
                 eval_split: str, eval_scenes: Optional[int], progress: bool = True) -> dict:
   """One study row (study_common.CSV_COLUMNS) for a finished run trained by the entry point;
   `config` is what `check_workdir(run_dir, config_spec)` returned."""
-  from slotlifter_jax import train
+  from slotlifter_jax import collapse
   result = _evaluation(config, run_dir, split=eval_split, eval_scenes=eval_scenes,
                        progress=progress)
   train_records, val_records = sc.read_log(run_dir)
@@ -113,7 +113,7 @@ def workdir_row(run_dir: str, config, *, config_spec: str, study: str, name: str
   for k in sc.METRIC_KEYS:
     value = result["metrics"].get(k, {}).get("mean")
     row[k] = math.nan if value is None else float(value)
-  row.update(sc.collapse_record(val_records, train.collapse_settled_step(config.train)))
+  row.update(sc.collapse_record(val_records, collapse.settled_step(config.train)))
   return row
 
 

@@ -60,6 +60,12 @@ class SlotUsage:
   foreground_pixels: jax.Array  # [...] foreground weight Σ_n fg_n (0: view says nothing)
 
 
+def settled_step(train_config) -> int:
+  """From this step on, a collapse flag means collapse: before it, slot noise and masking are still
+  annealing and diffuse segmentations are expected."""
+  return max(int(train_config.mask_anneal_steps), int(train_config.noise_anneal_steps))
+
+
 def _normalised_entropy(p: jax.Array) -> jax.Array:
   """Entropy over the last axis divided by log K (K = 1 gives 0)."""
   k = p.shape[-1]

@@ -180,9 +180,13 @@ def base_config() -> ml_collections.ConfigDict:
   # this step on (0: from the start), up to `locality_steps`.
   t.locality_attention_start = 0
   t.max_nonfinite_in_row = 20
-  # Restart a run that validation flags as collapsed (after the masking and slot-noise schedules)
-  # from the next seed, at most this many times; the collapsed attempt is kept under collapsed/.
-  t.collapse_restarts = 0
+  # Restart a run from a new seed (seed + 1000) at most this many times, when validation flags it
+  # as collapsed after the masking and slot-noise schedules, or when its selection score
+  # (`select_by`) is below `restart_min_score` at step `restart_check_step` (0: no such check).
+  # The abandoned attempt is kept under DIR/restarted/ (slotlifter_jax/restarts.py).
+  t.restarts = 0
+  t.restart_check_step = 0
+  t.restart_min_score = 0.0
   t.log_every = 50
   t.eval_every = 5000
   t.eval_scenes = 8  # validation scenes used at each evaluation interval

@@ -24,8 +24,10 @@ from absl import logging
 from tqdm import tqdm
 
 from slotlifter_jax import checkpoints as ckpt_lib
+from slotlifter_jax import collapse
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import multihost
+from slotlifter_jax import restarts
 from slotlifter_jax import train_step as step_lib
 from slotlifter_jax import emergence
 from slotlifter_jax import validation
@@ -148,6 +150,12 @@ def _check_selection(train_config) -> None:
                       f"got {select_by!r}")
 
 
+def _check_restarts(train_config) -> None:
+  problem = restarts.config_problem(train_config)
+  if problem:
+    raise ConfigError(problem)
+
+
 def _check_sampler(config, train_scenes) -> bool:
   """Validates data.sampler, data.curriculum and train.steps_per_dispatch; True for "device"."""
   sampler = config.data.get("sampler", "host")
@@ -179,11 +187,13 @@ def _check_sampler(config, train_scenes) -> bool:
 
 
 class _RunClock:
-  """Wall-clock seconds of training of a run, summed over its resumes (the `wall_s` of
-  metrics.jsonl): a resumed run continues from the last `wall_s` it logged."""
+  """Wall-clock seconds of training of a run, summed over its resumes and restarts (the `wall_s`
+  of metrics.jsonl): a resumed run continues from the last `wall_s` it logged, a new attempt
+  from the last one its abandoned attempt logged."""
 
   def __init__(self, workdir: str):
-    self._offset = _last_logged_wall_s(os.path.join(workdir, "metrics.jsonl"))
+    self._offset = max(_last_logged_wall_s(os.path.join(workdir, "metrics.jsonl")),
+                       restarts.archived_wall_s(workdir, _last_logged_wall_s))
     self._start = time.time()
 
   def elapsed(self) -> float:
@@ -217,34 +227,6 @@ def _record_emergence(workdir: str) -> None:
     logging.info("%s", line)
 
 
-COLLAPSED_DIR = "collapsed"  # where a collapsed attempt is moved before a restart (never deleted)
-_ATTEMPT_FILES = ("checkpoints", "metrics.jsonl", "tb", "val", "config.json")
-
-
-def collapse_settled_step(train_config) -> int:
-  """From this step on, a collapse flag means collapse: before it, slot noise and masking are still
-  annealing and diffuse segmentations are expected (slotlifter_jax/collapse.py)."""
-  return max(int(train_config.mask_anneal_steps), int(train_config.noise_anneal_steps))
-
-
-def _restart_after_collapse(config, workdir: str, step: int) -> ml_collections.ConfigDict:
-  """Moves this attempt's files to workdir/collapsed/seed_<seed>/ and returns the next config."""
-  archive = os.path.join(workdir, COLLAPSED_DIR, f"seed_{config.seed}")
-  if multihost.is_primary():
-    os.makedirs(archive, exist_ok=False)
-    for name in _ATTEMPT_FILES:
-      if os.path.exists(os.path.join(workdir, name)):
-        os.replace(os.path.join(workdir, name), os.path.join(archive, name))
-  multihost.barrier("collapse_restart")  # the next attempt starts from an empty run folder
-  new = ml_collections.ConfigDict(config.to_dict())
-  new.seed = int(config.seed) + 1
-  new.train.collapse_restarts = int(config.train.collapse_restarts) - 1
-  logging.warning("validation flags the run as collapsed at step %d; moved it to %s and restarting "
-                  "from seed %d (%d restarts left)", step, archive, new.seed,
-                  new.train.collapse_restarts)
-  return new
-
-
 def _process_local(tree):
   """This process's copy of a replicated tree: with several processes, validation renders on the
   local device alone (the same program and numbers as on one process, with no cross-process step
@@ -257,8 +239,9 @@ def _process_local(tree):
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   """Trains (or resumes) the run in `workdir`; returns the last validation metrics.
 
-  With `train.collapse_restarts` > 0, a run whose validation flags collapse once the schedules have
-  settled is moved to workdir/collapsed/seed_<seed>/ and trained again from the next seed.
+  With `train.restarts` > 0, an attempt that validation finds collapsed once the schedules have
+  settled, or scoring below `train.restart_min_score` at `train.restart_check_step`, is moved to
+  workdir/restarted/seed_<seed>/ and trained again from a new seed (slotlifter_jax/restarts.py).
   """
   # Nothing is created until the config and the data are known to be good.
   if os.path.exists(workdir) and not os.path.isdir(workdir):
@@ -266,15 +249,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   _check_masking(config.train)
   _check_rates(config.train)
   _check_selection(config.train)
+  _check_restarts(config.train)
   saved = ckpt_lib.load_saved_config(workdir)
   ckpt_lib.check_compatible(config, saved, workdir)
-  if saved is not None and saved.get("seed") != config.seed and os.path.isdir(
-      os.path.join(workdir, COLLAPSED_DIR)):
-    # A restart after collapse changed the seed: resuming continues that attempt exactly.
-    config = ml_collections.ConfigDict(config.to_dict())
-    config.seed = int(saved["seed"])
-    config.train.collapse_restarts = int(saved["train"].get("collapse_restarts", 0))
-    logging.info("resuming the restarted attempt with seed %d", config.seed)
+  # After a restart the folder holds an attempt with another seed: resuming continues it exactly.
+  config = restarts.resumed_seed(config, saved, workdir)
   # Process 0 generates an absent embedded set and the others then read it. The barrier in it also
   # means that every process has read config.json (above) before process 0 rewrites it (below).
   config = multihost.primary_first(lambda: embedded.resolve_data(config), "data")
@@ -346,7 +325,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   start = int(state.step)
   total = config.train.num_steps
   last_val = {}
-  restart = False
+  restart = None  # why this attempt gives way to a new seed
   interrupted = None
   batches = None if on_device else pipeline.prefetch(
       (sampler.batch(s, rows) for s in range(start, total)), size=2)
@@ -395,7 +374,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
           last_val["num_val_scenes"] = len(validator.scenes)
           writer.write(done, "val", last_val)
           checkpoints.save_best(state, last_val["score"])
-          if last_val.get("collapsed") == 1.0 and done >= collapse_settled_step(config.train):
+          if last_val.get("collapsed") == 1.0 and done >= collapse.settled_step(config.train):
             reasons = [k.removeprefix("collapse_") for k in ("collapse_dominant_slot",
                        "collapse_too_few_active", "collapse_near_uniform", "collapse_black")
                        if last_val.get(k) == 1.0]
@@ -403,8 +382,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
                             "share %.2f, %.1f active slots)", done, ", ".join(reasons),
                             last_val.get("probe_largest_share", np.nan),
                             last_val.get("probe_active_slots", np.nan))
-            if config.train.collapse_restarts > 0:
-              restart = True
+          if config.train.restarts > 0:
+            restart = restarts.reason(config.train, done, last_val)
+            if restart:
               break
         if done % config.train.checkpoint_every == 0 or done == total:
           checkpoints.save(state)
@@ -426,7 +406,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   if interrupted is not None:
     raise interrupted
   if restart:
-    return train_and_evaluate(_restart_after_collapse(config, workdir, done), workdir)
+    return train_and_evaluate(restarts.archive_and_reseed(config, workdir, done, restart), workdir)
   if last_val.get("collapsed") == 1.0:
     logging.warning("the run ends flagged as collapsed (see 'collapsed' in %s/metrics.jsonl)", workdir)
   return last_val

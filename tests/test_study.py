@@ -27,6 +27,7 @@ from experiments import study_common as sc  # noqa: E402
 from experiments import study_tables as st  # noqa: E402
 from slotlifter_jax import evaluate  # noqa: E402
 from slotlifter_jax import schedules  # noqa: E402
+from slotlifter_jax import collapse  # noqa: E402
 from slotlifter_jax import train  # noqa: E402
 
 SMOKE = "configs/clevr.py:smoke"
@@ -191,7 +192,7 @@ def test_budget_scales_the_schedules_and_run_ids_follow_the_config():
   # Half the budget, half of every schedule (the quick variant's are even numbers of steps).
   assert [t[f] for f in fields] == [int(quick[f]) // 2 for f in fields]
   assert (t.num_steps, t.eval_every) == (half, half // 2)
-  assert train.collapse_settled_step(t) < t.num_steps  # the last flag means collapse
+  assert collapse.settled_step(t) < t.num_steps  # the last flag means collapse
   assert c.data.family == "room" and c.model.num_slots == 5 and c.data.image_size == 64
   # An override equal to the config's own value is the same run (stability.py shares
   # ablations.py's `full`); another seed, budget or a real change is not.

@@ -15,7 +15,9 @@ import optax
 import pytest
 
 from slotlifter_jax import checkpoints as ckpt_lib
+from slotlifter_jax import collapse
 from slotlifter_jax import model as model_lib
+from slotlifter_jax import restarts
 from slotlifter_jax import schedules
 from slotlifter_jax import train
 from slotlifter_jax import train_step as step_lib
@@ -296,31 +298,69 @@ def test_four_devices_match_one_device():
 
 
 @pytest.mark.slow
-def test_collapsed_run_is_kept_and_restarted_from_the_next_seed(tmp_path, monkeypatch):
+@pytest.mark.parametrize("trigger", ["collapsed", "score"])
+def test_abandoned_attempt_is_kept_and_the_run_restarts_from_a_new_seed(trigger, tmp_path,
+                                                                        monkeypatch):
   config = load_config()
-  config.train.collapse_restarts = 1
+  config.train.restarts = 1
+  if trigger == "score":
+    config.train.restart_check_step = config.train.eval_every
+    config.train.restart_min_score = 0.5
   real_run = validation.Validator.run
   calls = {"n": 0}
-  def run_flagging_the_first_attempt(self, params, step):
+  def run_failing_the_first_validation(self, params, step):
     result = real_run(self, params, step)
     calls["n"] += 1
-    result["collapsed"] = 1.0 if calls["n"] == 1 else 0.0  # the first validation of seed 0
+    first = calls["n"] == 1  # the first validation of seed 0
+    result["collapsed"] = 1.0 if first and trigger == "collapsed" else 0.0
+    result["score"] = 0.4 if first else 0.9  # below, then above, restart_min_score
     return result
-  monkeypatch.setattr(validation.Validator, "run", run_flagging_the_first_attempt)
+  monkeypatch.setattr(validation.Validator, "run", run_failing_the_first_validation)
   workdir = str(tmp_path / "run")
-  settled = train.collapse_settled_step(config.train)
-  assert settled <= config.train.eval_every  # the first validation already counts
+  assert collapse.settled_step(config.train) <= config.train.eval_every  # the first flag counts
   train.train_and_evaluate(config, workdir)
 
-  archive = os.path.join(workdir, train.COLLAPSED_DIR, "seed_0")
+  archive = os.path.join(workdir, restarts.RESTARTED_DIR, "seed_0")
   with open(os.path.join(archive, "metrics.jsonl")) as f:
     first = [json.loads(line) for line in f]
-  assert max(r["step"] for r in first) == config.train.eval_every  # stopped at the flag
+  assert max(r["step"] for r in first) == config.train.eval_every  # stopped at that validation
   assert os.path.isdir(os.path.join(archive, "checkpoints"))  # nothing was deleted
+  with open(os.path.join(archive, "restart.json")) as f:
+    why = json.load(f)
+  assert why["seed"] == 0 and why["step"] == config.train.eval_every
+  assert why["reason"].startswith("collapsed" if trigger == "collapsed" else "selection score")
   with open(os.path.join(workdir, "config.json")) as f:
     saved = json.load(f)
-  assert saved["seed"] == 1 and saved["train"]["collapse_restarts"] == 0
+  # Not seed 1: a seed's second attempt must not be another seed's first.
+  assert saved["seed"] == restarts.SEED_STRIDE and saved["train"]["restarts"] == 0
   assert _final_params(workdir, config)[0] == config.train.num_steps
+  # The clock goes on across the restart: the run's wall time includes the abandoned attempt.
+  with open(os.path.join(workdir, "metrics.jsonl")) as f:
+    second = [json.loads(line) for line in f]
+  assert min(r["wall_s"] for r in second) > max(r["wall_s"] for r in first)
+  # The same command again resumes the new attempt (already finished) instead of starting over.
+  train.train_and_evaluate(config, workdir)
+  assert sorted(os.listdir(os.path.join(workdir, restarts.RESTARTED_DIR))) == ["seed_0"]
+
+
+def test_restart_reasons_and_config_checks():
+  config = load_config()
+  t = config.train
+  t.restart_check_step, t.restart_min_score = 2 * t.eval_every, 0.55
+  settled = collapse.settled_step(t)
+  ok = dict(collapsed=0.0, score=0.60)
+  assert restarts.reason(t, t.restart_check_step, ok) is None
+  assert restarts.reason(t, t.restart_check_step, dict(ok, score=0.55)) is None  # not below
+  assert "0.540" in restarts.reason(t, t.restart_check_step, dict(ok, score=0.54))
+  assert restarts.reason(t, t.eval_every, dict(ok, score=0.0)) is None  # only at the check step
+  assert restarts.reason(t, settled, dict(ok, collapsed=1.0)) == "collapsed"
+  if settled > 0:
+    assert restarts.reason(t, settled - 1, dict(ok, collapsed=1.0)) is None
+  assert restarts.config_problem(t) is None
+  t.restart_check_step = t.eval_every + 1
+  assert "train.restart_check_step" in restarts.config_problem(t)
+  t.restart_check_step, t.restarts = 0, -1
+  assert "train.restarts=-1 must be ≥ 0" in restarts.config_problem(t)
 
 
 @pytest.mark.parametrize("select_by, has_masks, expected", [

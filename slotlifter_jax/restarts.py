@@ -1,0 +1,106 @@
+"""Restarting a run from a new seed when validation says the attempt will not decompose.
+
+Two triggers, both read from the validation that just ran:
+- collapse (`slotlifter_jax/collapse.py`), once the masking and slot-noise schedules have settled;
+- a selection score (`train.select_by`) below `train.restart_min_score` at the validation of
+  step `train.restart_check_step`. On the embedded clevr set the worse of validation FG-ARI and
+  NV-ARI at step 14 000 already separates the seeds that end split from those that do not
+  (experiments/README.md, "Twentieth round"); like `select_by`, this is model selection on the
+  validation split, never the test split, and training still sees only the photometric loss.
+
+An abandoned attempt is moved, never deleted, to DIR/restarted/seed_<s>/, and the next attempt
+trains from seed s + SEED_STRIDE in the emptied run folder, so that the attempts of one seed
+never repeat the first attempt of another (seed 1's second attempt is not seed 2's run). The run's
+wall clock (`wall_s`) goes on across attempts: the time to decomposition includes the restarts.
+"""
+
+import glob
+import json
+import logging
+import os
+from typing import Optional
+
+import ml_collections
+
+from slotlifter_jax import collapse
+from slotlifter_jax import multihost
+
+RESTARTED_DIR = "restarted"
+_LEGACY_DIRS = ("collapsed",)  # run folders written before the score trigger existed
+ATTEMPT_FILES = ("checkpoints", "metrics.jsonl", "tb", "val", "config.json", "emergence.json")
+SEED_STRIDE = 1000
+
+
+def config_problem(train_config) -> Optional[str]:
+  """What is wrong with the restart fields, in one line naming the field, or None."""
+  check = int(train_config.get("restart_check_step", 0))
+  if check < 0 or (check and check % int(train_config.eval_every)):
+    return (f"train.restart_check_step={check} must be 0 (no check) or a multiple of "
+            f"train.eval_every={train_config.eval_every}, a step that validates")
+  if int(train_config.get("restarts", 0)) < 0:
+    return f"train.restarts={train_config.restarts} must be ≥ 0"
+  return None
+
+
+def reason(train_config, step: int, val: dict) -> Optional[str]:
+  """Why the validation `val` of step `step` calls for a new seed, or None."""
+  if val.get("collapsed") == 1.0 and step >= collapse.settled_step(train_config):
+    return "collapsed"
+  check = int(train_config.get("restart_check_step", 0))
+  floor = float(train_config.get("restart_min_score", 0.0))
+  if check and step == check and val["score"] < floor:
+    return (f"selection score ({train_config.get('select_by', 'nv_ari')}) {val['score']:.3f} "
+            f"< train.restart_min_score={floor} at step {check}")
+  return None
+
+
+def archived_attempts(workdir: str) -> list[str]:
+  """The folders of this run's abandoned attempts, oldest first."""
+  found = []
+  for name in (RESTARTED_DIR,) + _LEGACY_DIRS:
+    found += glob.glob(os.path.join(workdir, name, "seed_*"))
+  # Each attempt's seed is larger than the one before it.
+  return sorted(found, key=lambda p: int(os.path.basename(p).removeprefix("seed_")))
+
+
+def archived_wall_s(workdir: str, last_logged_wall_s) -> float:
+  """Wall seconds spent on abandoned attempts: the last `wall_s` logged by the latest one, whose
+  clock already went on from the ones before it."""
+  attempts = archived_attempts(workdir)
+  if not attempts:
+    return 0.0
+  return last_logged_wall_s(os.path.join(attempts[-1], "metrics.jsonl"))
+
+
+def resumed_seed(config: ml_collections.ConfigDict, saved: Optional[dict],
+                 workdir: str) -> ml_collections.ConfigDict:
+  """The config of the attempt to resume: after a restart the saved seed (and restarts left)
+  differ from the command line's, and the run goes on with the attempt in the folder."""
+  if saved is None or saved.get("seed") == config.seed or not archived_attempts(workdir):
+    return config
+  config = ml_collections.ConfigDict(config.to_dict())
+  config.seed = int(saved["seed"])
+  config.train.restarts = int(saved["train"].get("restarts",
+                                                 saved["train"].get("collapse_restarts", 0)))
+  logging.info("resuming the restarted attempt with seed %d", config.seed)
+  return config
+
+
+def archive_and_reseed(config: ml_collections.ConfigDict, workdir: str, step: int,
+                       why: str) -> ml_collections.ConfigDict:
+  """Moves this attempt's files to workdir/restarted/seed_<seed>/; returns the next config."""
+  archive = os.path.join(workdir, RESTARTED_DIR, f"seed_{config.seed}")
+  if multihost.is_primary():
+    os.makedirs(archive, exist_ok=False)
+    for name in ATTEMPT_FILES:
+      if os.path.exists(os.path.join(workdir, name)):
+        os.replace(os.path.join(workdir, name), os.path.join(archive, name))
+    with open(os.path.join(archive, "restart.json"), "w") as f:
+      json.dump(dict(seed=int(config.seed), step=int(step), reason=why), f)
+  multihost.barrier("restart")  # the next attempt starts from an empty run folder
+  new = ml_collections.ConfigDict(config.to_dict())
+  new.seed = int(config.seed) + SEED_STRIDE
+  new.train.restarts = int(config.train.restarts) - 1
+  logging.warning("step %d: %s; moved the attempt to %s and restarting from seed %d (%d restarts "
+                  "left)", step, why, archive, new.seed, new.train.restarts)
+  return new
