@@ -16,11 +16,11 @@ wall clock (`wall_s`) goes on across attempts: the time to decomposition include
 
 import glob
 import json
-import logging
 import os
 from typing import Optional
 
 import ml_collections
+from absl import logging
 
 from slotlifter_jax import collapse
 from slotlifter_jax import multihost
@@ -60,7 +60,11 @@ def archived_attempts(workdir: str) -> list[str]:
   for name in (RESTARTED_DIR,) + _LEGACY_DIRS:
     found += glob.glob(os.path.join(workdir, name, "seed_*"))
   # Each attempt's seed is larger than the one before it.
-  return sorted(found, key=lambda p: int(os.path.basename(p).removeprefix("seed_")))
+  return sorted(found, key=_attempt_seed)
+
+
+def _attempt_seed(folder: str) -> int:
+  return int(os.path.basename(folder).removeprefix("seed_"))
 
 
 def archived_wall_s(workdir: str, last_logged_wall_s) -> float:
@@ -75,15 +79,22 @@ def archived_wall_s(workdir: str, last_logged_wall_s) -> float:
 def resumed_seed(config: ml_collections.ConfigDict, saved: Optional[dict],
                  workdir: str) -> ml_collections.ConfigDict:
   """The config of the attempt to resume: after a restart the saved seed (and restarts left)
-  differ from the command line's, and the run goes on with the attempt in the folder."""
-  if saved is None or saved.get("seed") == config.seed or not archived_attempts(workdir):
+  differ from the command line's, and the run goes on with the attempt in the folder. A run
+  stopped between moving an attempt away and saving the next one's config goes on with the
+  next seed."""
+  attempts = archived_attempts(workdir)
+  if not attempts or (saved is not None and saved.get("seed") == config.seed):
     return config
-  config = ml_collections.ConfigDict(config.to_dict())
-  config.seed = int(saved["seed"])
-  config.train.restarts = int(saved["train"].get("restarts",
-                                                 saved["train"].get("collapse_restarts", 0)))
-  logging.info("resuming the restarted attempt with seed %d", config.seed)
-  return config
+  new = ml_collections.ConfigDict(config.to_dict())
+  if saved is None:
+    new.seed = _attempt_seed(attempts[-1]) + SEED_STRIDE
+    new.train.restarts = max(int(config.train.restarts) - len(attempts), 0)
+  else:
+    new.seed = int(saved["seed"])
+    new.train.restarts = int(saved["train"].get("restarts",
+                                              saved["train"].get("collapse_restarts", 0)))
+  logging.info("resuming the restarted attempt with seed %d", new.seed)
+  return new
 
 
 def archive_and_reseed(config: ml_collections.ConfigDict, workdir: str, step: int,

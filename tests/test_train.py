@@ -380,3 +380,19 @@ def test_selection_score_without_a_foreground_ranks_last():
   result = {"fg_ari": float("nan"), "nv_ari": 0.9, "psnr_novel": 30.0}
   assert validation.selection_score(result, "min_fg_nv", has_masks=True) == -1.0
   assert validation.selection_score(result, "nv_ari", has_masks=True) == pytest.approx(0.9)
+
+
+def test_a_run_stopped_between_two_attempts_goes_on_with_the_next_seed(tmp_path):
+  config = load_config()
+  config.train.restarts = 2
+  workdir = tmp_path / "run"
+  os.makedirs(workdir / restarts.RESTARTED_DIR / "seed_0")
+  # Nothing saved yet for the next attempt: seed 0 was abandoned, so the run is seed 1000's.
+  resumed = restarts.resumed_seed(config, None, str(workdir))
+  assert (resumed.seed, resumed.train.restarts) == (restarts.SEED_STRIDE, 1)
+  # Saved by that attempt: its own seed and restarts left, whatever the command line says.
+  saved = dict(seed=restarts.SEED_STRIDE, train=dict(restarts=1))
+  resumed = restarts.resumed_seed(config, saved, str(workdir))
+  assert (resumed.seed, resumed.train.restarts) == (restarts.SEED_STRIDE, 1)
+  # No attempt archived: the command line's config as it is.
+  assert restarts.resumed_seed(config, None, str(tmp_path / "fresh")) is config
