@@ -51,7 +51,8 @@ def base_config() -> ml_collections.ConfigDict:
   # Not the paper's: while the locality constraint holds, source-view feature cells whose ray
   # never enters the locality box go to slot attention's first slot only, the one the decoder
   # keeps for points outside the box (docs/method.md §1.4). Off: it splits seed 3 at 1e-4 and
-  # collapses seed 1 into that slot (experiments/README.md, "Nineteenth round").
+  # collapses seed 1 into that slot (experiments/README.md, "Nineteenth round"); from step 6000
+  # on (`train.locality_attention_start`) it does neither ("Twentieth round").
   m.locality_attention = False
   m.remat_scan = False  # nn.scan + nn.remat over the decoder blocks: less memory, more time
   # Computation dtype: "float32", or "bfloat16" for bf16 matmuls and convolutions with float32
