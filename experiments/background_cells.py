@@ -50,11 +50,14 @@ def main():
   model = model_lib.build_model(config)
   signed = config.model.colour_range == "signed"
   shares, on_objects = [], []
+  sizes = {}  # image (H, W) → feature (h, w): traced once per image size, not once per scene
   for scene in scenes:
     idx = np.asarray(scene.source_indices)
     height, width = scene.images.shape[1:3]
     sources = views_lib.scene_sources(scene, signed=signed)
-    h, w = feature_size(model, sources)
+    if (height, width) not in sizes:
+      sizes[height, width] = feature_size(model, sources)
+    h, w = sizes[height, width]
     cells = np.asarray(model.apply(
         {}, source_cam_to_world=sources["source_cam_to_world"],
         source_intrinsics=sources["source_intrinsics"], image_size=(height, width),

@@ -17,19 +17,14 @@ import json
 import os
 import sys
 
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from slotlifter_jax import emergence  # noqa: E402  (numpy and absl only, no JAX)
+
 
 def _val_records(path: str) -> dict[int, dict]:
-  """Validation rows by step; the last row of a step wins (a resumed run logs it again)."""
-  rows = {}
-  with open(path) as f:
-    for line in f:
-      try:
-        r = json.loads(line)
-      except json.JSONDecodeError:  # a line cut by a kill
-        continue
-      if r.get("kind", "val") == "val" and "fg_ari" in r and "nv_ari" in r:
-        rows[int(r["step"])] = r
-  return rows
+  """Validation rows with both ARIs, by step, as they survive resumes (emergence.latest_records)."""
+  records = emergence.latest_records(emergence.load_records(path), "val")
+  return {int(r["step"]): r for r in records if "fg_ari" in r and "nv_ari" in r}
 
 
 def _paths(run: str) -> tuple[str, str]:

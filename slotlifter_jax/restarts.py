@@ -67,13 +67,11 @@ def _attempt_seed(folder: str) -> int:
   return int(os.path.basename(folder).removeprefix("seed_"))
 
 
-def archived_wall_s(workdir: str, last_logged_wall_s) -> float:
-  """Wall seconds spent on abandoned attempts: the last `wall_s` logged by the latest one, whose
-  clock already went on from the ones before it."""
+def latest_archived_log(workdir: str) -> Optional[str]:
+  """The metrics.jsonl of the latest abandoned attempt, or None: its last `wall_s` already counts
+  the attempts before it, so the next attempt's clock goes on from there."""
   attempts = archived_attempts(workdir)
-  if not attempts:
-    return 0.0
-  return last_logged_wall_s(os.path.join(attempts[-1], "metrics.jsonl"))
+  return os.path.join(attempts[-1], "metrics.jsonl") if attempts else None
 
 
 def resumed_seed(config: ml_collections.ConfigDict, saved: Optional[dict],

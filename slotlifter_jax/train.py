@@ -192,8 +192,9 @@ class _RunClock:
   from the last one its abandoned attempt logged."""
 
   def __init__(self, workdir: str):
+    archived = restarts.latest_archived_log(workdir)
     self._offset = max(_last_logged_wall_s(os.path.join(workdir, "metrics.jsonl")),
-                       restarts.archived_wall_s(workdir, _last_logged_wall_s))
+                       _last_logged_wall_s(archived) if archived else 0.0)
     self._start = time.time()
 
   def elapsed(self) -> float:
