@@ -12,6 +12,7 @@ import os
 import subprocess
 import sys
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -260,3 +261,34 @@ def test_cli_refuses_to_overwrite(tmp_path):
   assert "exists" in result.stderr + result.stdout
   assert sorted(os.listdir(split)) == ["keep.txt"]
   assert not (tmp_path / "clevr_567_val").exists()
+
+
+def test_worker_renders_on_cpu_when_jax_platforms_names_only_a_gpu():
+  """A training process started with JAX_PLATFORMS=cuda hands that variable to the pool's
+  workers; their initializer must still put them on the CPU. Here no GPU exists, so a worker left
+  on "cuda" cannot start a backend at all."""
+  code = ("from slotlifter_jax.data import writer; writer._worker_init(); import jax; "
+          "print(jax.devices()[0].platform)")
+  env = dict(os.environ, JAX_PLATFORMS="cuda")
+  out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                       timeout=120)
+  assert out.returncode == 0, out.stderr[-2000:]
+  assert out.stdout.split()[-1] == "cpu"
+
+
+def test_scene_without_cpu_backend_renders_on_default_device(monkeypatch):
+  """Where JAX_PLATFORMS leaves no CPU backend, asking for one raises; the scene is then rendered
+  on the default device, the same scene (here the default device is the CPU)."""
+  kw = dict(family="clevr", views=2, image_size=16)
+  reference = generator.generate_scene(np.random.default_rng(3), **kw)
+  real = jax.local_devices
+
+  def no_cpu(*args, backend=None, **kwargs):
+    if backend == "cpu":
+      raise RuntimeError("Unknown backend cpu. Available backends are ['cuda']")
+    return real(*args, backend=backend, **kwargs)
+
+  monkeypatch.setattr(jax, "local_devices", no_cpu)
+  scene = generator.generate_scene(np.random.default_rng(3), **kw)
+  for name in ("rgb", "label", "depth", "cam_to_world"):
+    np.testing.assert_array_equal(getattr(scene, name), getattr(reference, name))

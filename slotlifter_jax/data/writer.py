@@ -72,14 +72,23 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
   `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
   select an easier set; see `sample_clevr_layout`.
 
-  Always renders on the CPU backend, so the files do not depend on the accelerator (if any) of the
+  Renders on the CPU backend, so the files do not depend on the accelerator (if any) of the
   calling process, and a training process never shares its accelerator memory with the generator.
+  A process started without a CPU backend (`JAX_PLATFORMS=cuda`) renders on its default device.
   """
-  with jax.default_device(jax.local_devices(backend="cpu")[0]):
+  with jax.default_device(_cpu_device()):
     return _generate_scene(rng, family=family, views=views, image_size=image_size,
                            supersample=supersample, max_attempts=max_attempts,
                            min_objects=min_objects, max_objects=max_objects,
                            object_scale=object_scale)
+
+
+def _cpu_device():
+  """The first CPU device, or None (JAX's default device) where JAX_PLATFORMS leaves no CPU."""
+  try:
+    return jax.local_devices(backend="cpu")[0]
+  except RuntimeError:
+    return None
 
 
 def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
@@ -183,8 +192,11 @@ def _write_scene(task: _SceneTask) -> dict:
 
 def _worker_init() -> None:
   # Workers render on the CPU only (no accelerator start-up or memory reservation per worker), with
-  # one XLA thread each: the pool already uses every core.
+  # one XLA thread each: the pool already uses every core. Unpickling this function imported jax,
+  # which read an inherited JAX_PLATFORMS (e.g. "cuda") already: the environment variable alone
+  # would come too late, the config option still counts until the first backend starts.
   os.environ["JAX_PLATFORMS"] = "cpu"
+  jax.config.update("jax_platforms", "cpu")
   os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
                              " --xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1")
 
