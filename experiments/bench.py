@@ -244,6 +244,14 @@ def _table(rows: list[dict]) -> str:
   return "\n".join("| " + l + " |" for l in lines)
 
 
+def _write_json(path: str, data: dict) -> None:
+  """Writes next to, then over, the old file: an interrupted run never leaves half a JSON."""
+  tmp_path = path + ".tmp"
+  with open(tmp_path, "w") as f:
+    json.dump(data, f, indent=1, sort_keys=True)
+  os.replace(tmp_path, path)
+
+
 def main(argv):
   del argv
   if FLAGS.worker:
@@ -305,13 +313,10 @@ def main(argv):
     previous[key] = result
     rows.append(result)
     print(_table([result]).splitlines()[-1], flush=True)
-  # Write next to, then over, the old file: an interrupted run never leaves half a JSON.
-  tmp_path = out_path + ".tmp"
-  with open(tmp_path, "w") as f:
-    json.dump(dict(info, configs=previous), f, indent=1, sort_keys=True)
-  os.replace(tmp_path, out_path)
+    # After every configuration, so a call cut short (a lease's time limit) keeps what it measured.
+    _write_json(out_path, dict(info, configs=previous))
   print(_table(rows))
-  print(f"[bench] wrote {out_path}")
+  print(f"[bench] wrote {out_path}" if rows else "[bench] nothing measured, nothing written")
 
 
 if __name__ == "__main__":
