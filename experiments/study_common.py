@@ -173,6 +173,11 @@ def budget_config(config, num_steps: int, *, scale_schedules: bool = True,
   t.num_steps = int(num_steps)
   t.eval_every = max(1, num_steps // max(1, num_validations))
   t.checkpoint_every = max(1, min(int(t.checkpoint_every), t.eval_every))
+  # One run is one attempt of one seed: a study measures how often a recipe fails (stability.py's
+  # collapse rate, an ablation's loss), which restarts would hide, and its two validations fall on
+  # no restart check step anyway.
+  t.restarts = 0
+  t.restart_check_step = 0
   return config
 
 

@@ -27,6 +27,7 @@ from experiments import study_common as sc  # noqa: E402
 from experiments import study_tables as st  # noqa: E402
 from slotlifter_jax import evaluate  # noqa: E402
 from slotlifter_jax import schedules  # noqa: E402
+from slotlifter_jax import restarts  # noqa: E402
 from slotlifter_jax import collapse  # noqa: E402
 from slotlifter_jax import train  # noqa: E402
 
@@ -479,6 +480,11 @@ def test_pareto_fast_grid_plans_one_axis_of_fast_at_its_own_budget(tmp_path, cap
   assert base.train.mask_min_steps == fast.train.mask_min_steps == 50_000
   assert (base.render.num_samples, samples8.render.num_samples) == (16, 8)
   assert samples8.train.rays_per_scene == base.train.rays_per_scene == 128
+  # fast restarts a failing seed; a study's run is one attempt (its two validations would not
+  # even fall on fast's check step), and the config it trains must pass train's checks.
+  assert fast.train.restarts > 0 and fast.train.restart_check_step % fast.train.eval_every == 0
+  assert (base.train.restarts, base.train.restart_check_step) == (0, 0)
+  assert restarts.config_problem(base.train) is None
   # The grid's base is the fast ablation study's `full` run: one training serves both.
   assert sc.run_id(runs[0]) == sc.run_id(
       ablations.plan(config="configs/clevr.py:fast", num_steps=60_000, seeds=range(1),
