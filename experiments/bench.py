@@ -244,14 +244,6 @@ def _table(rows: list[dict]) -> str:
   return "\n".join("| " + l + " |" for l in lines)
 
 
-def _write_json(path: str, data: dict) -> None:
-  """Writes next to, then over, the old file: an interrupted run never leaves half a JSON."""
-  tmp_path = path + ".tmp"
-  with open(tmp_path, "w") as f:
-    json.dump(data, f, indent=1, sort_keys=True)
-  os.replace(tmp_path, path)
-
-
 def main(argv):
   del argv
   if FLAGS.worker:
@@ -273,6 +265,7 @@ def main(argv):
   for choice in FLAGS.allocators:
     if choice not in runtime.ALLOCATORS:
       raise app.UsageError(f"--allocators: unknown {choice!r}; choose from {runtime.ALLOCATORS}")
+  from slotlifter_jax import emergence  # its atomic JSON writer (numpy only, no JAX)
   from slotlifter_jax import model as model_lib  # the valid model.dtype names
   for dtype in FLAGS.dtypes:
     if dtype not in model_lib.COMPUTE_DTYPES:
@@ -314,7 +307,7 @@ def main(argv):
     rows.append(result)
     print(_table([result]).splitlines()[-1], flush=True)
     # After every configuration, so a call cut short (a lease's time limit) keeps what it measured.
-    _write_json(out_path, dict(info, configs=previous))
+    emergence.write_json_atomically(out_path, dict(info, configs=previous))
   print(_table(rows))
   print(f"[bench] wrote {out_path}" if rows else "[bench] nothing measured, nothing written")
 

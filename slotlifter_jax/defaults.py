@@ -404,8 +404,8 @@ def fast(c):
   0.811–0.872 on the earlier host (experiments/README.md, "Twenty-first round",
   "Twenty-second round").
   Before the last bullet (base_lr 5e-5, one rate, no restarts), measured on the full set, the
-  earlier host with mimalloc, two runs side by side (minutes are upper bounds): seed 0 reached FG-ARI 0.5 at 17.7 min and 0.8 at 48.0 min,
-  and its step 60 000 checkpoint scores on the 100-scene test split FG-ARI 0.836, NV-ARI 0.821,
+  earlier host with mimalloc, two runs side by side (minutes are upper bounds): seed 0 reached
+  FG-ARI 0.5 at 17.7 min and 0.8 at 48.0 min, and its step 60 000 checkpoint scores on the 100-scene test split FG-ARI 0.836, NV-ARI 0.821,
   novel PSNR 26.0 dB (`experiments/results/clevr_probe_full_gradual_seed0_test_metrics.json`).
   Seeds 0–2 were trained in several invocations with the same schedules. Seed 3, alone on the
   CPU at 21–23 steps/s, trained 60 000 steps in 51.8 min and passed FG-ARI 0.5 at 10.2 min; on
