@@ -89,6 +89,12 @@ METRIC_DEFINITIONS = {
     "psnr_novel_bg": "PSNR (dB) of the novel views' background pixels, pooled likewise",
     "fg_pixel_share": "share of the novel views' pixels (views with masks) on objects",
     "fg_error_share": "share of the novel views' squared error (views with masks) on objects",
+    "psnr_novel_border": "PSNR (dB) of the novel views' background pixels within W/32 pixels "
+                         "(chessboard distance; 2 at 64 px) of an object: silhouettes and contact "
+                         "shadows, pooled like psnr_novel_fg",
+    "psnr_novel_bg_far": "PSNR (dB) of the novel views' other background pixels, pooled likewise",
+    "border_pixel_share": "share of the novel views' pixels (views with masks) in that border",
+    "border_error_share": "share of the novel views' squared error (views with masks) in it",
     "nv_ari": "ARI over all pixels of the novel views ({nv_rule})",
     "nv_fg_ari": "FG-ARI of the novel views ({nv_rule}); views without foreground skipped",
     "nv_fg_ari_multi": "FG-ARI of the novel views that show at least two ground-truth objects, "
@@ -213,7 +219,8 @@ def scene_metrics(rendered: views_lib.RenderedViews, scene: Scene, view_indices:
 
 
 def _region_metrics(colour: np.ndarray, scene: Scene, novel_views: np.ndarray) -> dict:
-  """Novel-view PSNR split by source visibility and by object / background (`regions`)."""
+  """Novel-view PSNR split by source visibility, by object / background, and the background by
+  distance to an object (`regions`)."""
   squared_error = np.mean((colour - scene.images[novel_views]) ** 2, axis=-1)  # [n, H, W]
   out = {}
   if scene.depth is not None:
@@ -227,9 +234,14 @@ def _region_metrics(colour: np.ndarray, scene: Scene, novel_views: np.ndarray) -
   if scene.masks is not None:
     masked = _views_with_mask(scene, novel_views)  # [n]
     if masked.any():
-      out.update(regions.split_metrics(squared_error=squared_error[masked],
-                                       region=scene.masks[novel_views[masked]] > 0,
+      masks = scene.masks[novel_views[masked]]
+      out.update(regions.split_metrics(squared_error=squared_error[masked], region=masks > 0,
                                        inside="fg", outside="bg"))
+      border = regions.object_border(masks, regions.border_radius(masks.shape[-1]))
+      far = (masks == 0) & ~border
+      out.update(regions.region_metrics(squared_error=squared_error[masked], region=border,
+                                        name="border"))
+      out["psnr_novel_bg_far"] = regions.pooled_psnr(squared_error[masked], far)
   return out
 
 

@@ -11,7 +11,11 @@ kinds of pixel; evaluation (slotlifter_jax/evaluate.py) also reports them apart:
 - `seen_by_sources`: which pixels of a view show a surface point that a source view also sees,
   from ground-truth depth (the embedded sets store it, docs/method.md §3.5);
 - `split_metrics`: PSNR of the squared error pooled inside and outside a region of a scene's
-  views, the region's share of the pixels and its share of the squared error.
+  views, the region's share of the pixels and its share of the squared error;
+- `object_border`: the background pixels next to an object. A novel view's silhouettes and the
+  contact shadows around them sit there, so it tells an object's misplaced or blurred outline
+  from a floor rendered wrong far from any object, which the plain object / background split
+  pools.
 
 Vocabulary (docs/method.md §0): n views, V source views, H×W image size. Pure NumPy, float64.
 """
@@ -21,6 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy import ndimage
 
 from slotlifter_jax import geometry
 
@@ -28,6 +33,9 @@ from slotlifter_jax import geometry
 DEPTH_SLACK = 1e-4
 # Slack of the image bounds in pixels: a border pixel's own centre must project inside.
 PIXEL_SLACK = 1e-6
+# Width of `object_border` as a fraction of the image width: 2 px at 64 px, 4 px at 128 px, so
+# the band covers the same part of a scene at either resolution.
+BORDER_FRACTION = 1 / 32
 
 
 def surface_points(*, depth: np.ndarray, cam_to_world: np.ndarray,
@@ -113,20 +121,47 @@ def pooled_psnr(squared_error: np.ndarray, region: np.ndarray) -> float:
   return math.inf if mse == 0 else -10.0 * math.log10(mse)
 
 
-def split_metrics(*, squared_error: np.ndarray, region: np.ndarray, inside: str,
-                  outside: str) -> dict[str, float]:
-  """PSNR inside and outside a region of a scene's views, the region's pixel and error shares.
+def region_metrics(*, squared_error: np.ndarray, region: np.ndarray,
+                   name: str) -> dict[str, float]:
+  """PSNR inside a region of a scene's views, the region's pixel and error shares.
 
   squared_error: [n, H, W] per pixel, averaged over colour channels; region: [n, H, W] bool.
-  Returns {psnr_novel_<inside>, psnr_novel_<outside>, <inside>_pixel_share,
-  <inside>_error_share}; the error share is NaN when there is no error at all.
+  Returns {psnr_novel_<name>, <name>_pixel_share, <name>_error_share}; the error share is NaN
+  when there is no error at all.
   """
   region = np.asarray(region, bool)
   total = float(squared_error.sum())
   return {
-      f"psnr_novel_{inside}": pooled_psnr(squared_error, region),
-      f"psnr_novel_{outside}": pooled_psnr(squared_error, ~region),
-      f"{inside}_pixel_share": float(region.mean()),
-      f"{inside}_error_share": float(squared_error[region].sum()) / total if total > 0
-                               else math.nan,
+      f"psnr_novel_{name}": pooled_psnr(squared_error, region),
+      f"{name}_pixel_share": float(region.mean()),
+      f"{name}_error_share": float(squared_error[region].sum()) / total if total > 0
+                             else math.nan,
   }
+
+
+def split_metrics(*, squared_error: np.ndarray, region: np.ndarray, inside: str,
+                  outside: str) -> dict[str, float]:
+  """`region_metrics` of a region and the PSNR of the pixels outside it,
+  psnr_novel_<outside>."""
+  region = np.asarray(region, bool)
+  return {**region_metrics(squared_error=squared_error, region=region, name=inside),
+          f"psnr_novel_{outside}": pooled_psnr(squared_error, ~region)}
+
+
+def border_radius(width: int) -> int:
+  """`object_border`'s width in pixels for images `width` pixels wide (at least 1)."""
+  return max(1, round(width * BORDER_FRACTION))
+
+
+def object_border(masks: np.ndarray, radius: int) -> np.ndarray:
+  """Background pixels within `radius` pixels of an object pixel: masks [n, H, W] → [n, H, W] bool.
+
+  Distance is the chessboard distance (a (2·radius + 1)² square around each object pixel), so one
+  pixel of radius is the 8-neighbourhood. Label 0 is background, any other label an object.
+  """
+  if radius < 1:
+    raise ValueError(f"object_border: radius must be at least 1, got {radius}")
+  objects = np.asarray(masks) > 0
+  size = 2 * radius + 1
+  near = ndimage.maximum_filter(objects, size=(1, size, size), mode="constant", cval=False)
+  return near & ~objects

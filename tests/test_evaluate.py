@@ -265,7 +265,9 @@ def test_eval_writes_metrics_and_refuses_to_overwrite(run_dir):
             # The embedded set stores depth, so novel PSNR is also split by source visibility.
             "psnr_novel_seen": (0, 100), "psnr_novel_unseen": (0, 100),
             "unseen_pixel_share": (0, 1), "unseen_error_share": (0, 1),
-            "psnr_novel_fg": (0, 100), "psnr_novel_bg": (0, 100), "fg_error_share": (0, 1)}
+            "psnr_novel_fg": (0, 100), "psnr_novel_bg": (0, 100), "fg_error_share": (0, 1),
+            "psnr_novel_border": (0, 100), "psnr_novel_bg_far": (0, 100),
+            "border_pixel_share": (0, 1), "border_error_share": (0, 1)}
   for name, (lo, hi) in ranges.items():
     m = report["metrics"][name]
     assert m["count"] == num_scenes, name

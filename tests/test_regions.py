@@ -184,5 +184,41 @@ def test_scene_metrics_split_novel_psnr_by_visibility_and_objects():
   assert out["psnr_novel_fg"] == pytest.approx(-10 * np.log10(se[fg].mean()), abs=1e-4)
   assert out["psnr_novel_bg"] == pytest.approx(-10 * np.log10(se[~fg].mean()), abs=1e-4)
   assert out["fg_error_share"] == pytest.approx(se[fg].sum() / se.sum(), rel=1e-4)
+  # The object's border at 40 px is 1 px (round(40 / 32)): the 8-neighbourhood ring of the
+  # 10×25 rectangle, a 12×27 box less the rectangle.
+  ring = np.zeros((SIZE, SIZE), bool)
+  ring[9:21, 4:31] = True
+  ring &= ~fg
+  assert ring.sum() == 12 * 27 - 10 * 25
+  assert out["psnr_novel_border"] == pytest.approx(-10 * np.log10(se[ring].mean()), abs=1e-4)
+  assert out["border_pixel_share"] == pytest.approx(ring.mean())
+  assert out["border_error_share"] == pytest.approx(se[ring].sum() / se.sum(), rel=1e-4)
+  far = ~fg & ~ring
+  assert out["psnr_novel_bg_far"] == pytest.approx(-10 * np.log10(se[far].mean()), abs=1e-4)
   # Validation (no image metrics) leaves the split out.
   assert "psnr_novel_seen" not in evaluate.scene_metrics(rendered, scene, [0, 1])
+
+
+def test_object_border_is_the_chessboard_ring_brute_force():
+  rng = np.random.default_rng(3)
+  masks = np.zeros((3, 13, 17), np.int32)
+  for view in range(3):  # a few labelled pixels and blobs, some on the image edge
+    masks[view][rng.uniform(size=(13, 17)) < 0.04] = view + 1
+  masks[0, 0, 0] = 2
+  masks[2, 5:8, 14:17] = 3
+  vv, uu = np.mgrid[0:13, 0:17]
+  for radius in (1, 2, 3):
+    border = regions.object_border(masks, radius)
+    for view in range(3):
+      ov, ou = np.nonzero(masks[view])
+      # Chessboard distance from every pixel to its nearest object pixel.
+      dist = np.max(np.abs(np.stack([vv[..., None] - ov, uu[..., None] - ou])), axis=0).min(-1)
+      expected = (dist >= 1) & (dist <= radius)
+      np.testing.assert_array_equal(border[view], expected, err_msg=f"radius {radius}")
+  assert not regions.object_border(np.zeros((1, 4, 4), np.int32), 2).any()
+  with pytest.raises(ValueError, match="radius"):
+    regions.object_border(masks, 0)
+
+
+def test_border_radius_scales_with_the_image():
+  assert [regions.border_radius(w) for w in (16, 40, 64, 128, 256)] == [1, 1, 2, 4, 8]
