@@ -360,7 +360,9 @@ def fast(c):
     gradients poorly inside a loop body (`fast_device`, `fast_scan10` in experiments/bench.py).
   Altogether the step costs 0.064 s against quick's 0.324 s (1/5, not the 1/8 aimed at: 1/8.3 of
   the FLOPs, but small matmuls run far below the CPU's peak; experiments/README.md, "The
-  scene-sized model").
+  scene-sized model"); on the slower host of 2026-11-27, 0.0791 s against 0.5201 s (1/6.6,
+  `experiments/results/bench_cpu_20261127_quick_fast.json`). XLA:CPU's switches do not close
+  the rest (docs/performance.md §2).
   - the learning rate held near its base (half-life 200 000 steps): with a 15 000-step half-life
     the curves flattened as the rate decayed.
   Two data options and a masking floor make it split the full set; the model and the photometric
