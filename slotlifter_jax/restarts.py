@@ -22,6 +22,7 @@ from typing import Optional
 import ml_collections
 from absl import logging
 
+from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import collapse
 from slotlifter_jax import multihost
 
@@ -97,8 +98,17 @@ def resumed_seed(config: ml_collections.ConfigDict, saved: Optional[dict],
 
 def archive_and_reseed(config: ml_collections.ConfigDict, workdir: str, step: int,
                        why: str) -> ml_collections.ConfigDict:
-  """Moves this attempt's files to workdir/restarted/seed_<seed>/; returns the next config."""
+  """Moves this attempt's files to workdir/restarted/seed_<seed>/ and saves the next attempt's
+  config.json (its seed and the restarts it has left) in the emptied folder; returns that config.
+
+  The next attempt must find its config saved: with none, `resumed_seed` rebuilds it from the
+  command line's count of restarts less the archived attempts, and the config passed on here
+  already counts this restart, so the run would lose one.
+  """
   archive = os.path.join(workdir, RESTARTED_DIR, f"seed_{config.seed}")
+  new = ml_collections.ConfigDict(config.to_dict())
+  new.seed = int(config.seed) + SEED_STRIDE
+  new.train.restarts = int(config.train.restarts) - 1
   if multihost.is_primary():
     os.makedirs(archive, exist_ok=False)
     for name in ATTEMPT_FILES:
@@ -106,10 +116,8 @@ def archive_and_reseed(config: ml_collections.ConfigDict, workdir: str, step: in
         os.replace(os.path.join(workdir, name), os.path.join(archive, name))
     with open(os.path.join(archive, "restart.json"), "w") as f:
       json.dump(dict(seed=int(config.seed), step=int(step), reason=why), f)
-  multihost.barrier("restart")  # the next attempt starts from an empty run folder
-  new = ml_collections.ConfigDict(config.to_dict())
-  new.seed = int(config.seed) + SEED_STRIDE
-  new.train.restarts = int(config.train.restarts) - 1
+    ckpt_lib.save_config(new, workdir)
+  multihost.barrier("restart")  # the next attempt starts from a folder holding only its config
   logging.warning("step %d: %s; moved the attempt to %s and restarting from seed %d (%d restarts "
                   "left)", step, why, archive, new.seed, new.train.restarts)
   return new

@@ -302,7 +302,7 @@ def test_four_devices_match_one_device():
 def test_abandoned_attempt_is_kept_and_the_run_restarts_from_a_new_seed(trigger, tmp_path,
                                                                         monkeypatch):
   config = load_config()
-  config.train.restarts = 1
+  config.train.restarts = 2
   if trigger == "score":
     config.train.restart_check_step = config.train.eval_every
     config.train.restart_min_score = 0.5
@@ -331,8 +331,9 @@ def test_abandoned_attempt_is_kept_and_the_run_restarts_from_a_new_seed(trigger,
   assert why["reason"].startswith("collapsed" if trigger == "collapsed" else "selection score")
   with open(os.path.join(workdir, "config.json")) as f:
     saved = json.load(f)
-  # Not seed 1: a seed's second attempt must not be another seed's first.
-  assert saved["seed"] == restarts.SEED_STRIDE and saved["train"]["restarts"] == 0
+  # Not seed 1: a seed's second attempt must not be another seed's first. One restart of two
+  # is spent, so one is left.
+  assert saved["seed"] == restarts.SEED_STRIDE and saved["train"]["restarts"] == 1
   assert _final_params(workdir, config)[0] == config.train.num_steps
   # The clock goes on across the restart: the run's wall time includes the abandoned attempt.
   with open(os.path.join(workdir, "metrics.jsonl")) as f:
@@ -380,6 +381,28 @@ def test_selection_score_without_a_foreground_ranks_last():
   result = {"fg_ari": float("nan"), "nv_ari": 0.9, "psnr_novel": 30.0}
   assert validation.selection_score(result, "min_fg_nv", has_masks=True) == -1.0
   assert validation.selection_score(result, "nv_ari", has_masks=True) == pytest.approx(0.9)
+
+
+def test_each_restart_spends_one_of_the_restarts(tmp_path):
+  # The loop hands the next attempt the config archive_and_reseed returns; train_and_evaluate
+  # then passes it through resumed_seed with whatever config.json the folder holds.
+  config = load_config()
+  config.train.restarts = 2
+  workdir = str(tmp_path / "run")
+  ckpt_lib.save_config(config, workdir)
+  attempt = config
+  for seed, left in ((restarts.SEED_STRIDE, 1), (2 * restarts.SEED_STRIDE, 0)):
+    nxt = restarts.archive_and_reseed(attempt, workdir, 14_000, "test")
+    assert (nxt.seed, nxt.train.restarts) == (seed, left)
+    attempt = restarts.resumed_seed(nxt, ckpt_lib.load_saved_config(workdir), workdir)
+    assert (attempt.seed, attempt.train.restarts) == (seed, left)
+    # The command line's config, run again in that folder, goes on with the same attempt.
+    again = restarts.resumed_seed(config, ckpt_lib.load_saved_config(workdir), workdir)
+    assert (again.seed, again.train.restarts) == (seed, left)
+  archived = restarts.archived_attempts(workdir)
+  assert [os.path.basename(a) for a in archived] == ["seed_0", f"seed_{restarts.SEED_STRIDE}"]
+  with open(os.path.join(archived[1], "config.json")) as f:
+    assert json.load(f)["train"]["restarts"] == 1  # each attempt keeps the config it ran with
 
 
 def test_a_run_stopped_between_two_attempts_goes_on_with_the_next_seed(tmp_path):
