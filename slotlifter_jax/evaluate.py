@@ -234,14 +234,12 @@ def _region_metrics(colour: np.ndarray, scene: Scene, novel_views: np.ndarray) -
   if scene.masks is not None:
     masked = _views_with_mask(scene, novel_views)  # [n]
     if masked.any():
-      masks = scene.masks[novel_views[masked]]
-      out.update(regions.split_metrics(squared_error=squared_error[masked], region=masks > 0,
-                                       inside="fg", outside="bg"))
+      masks, error = scene.masks[novel_views[masked]], squared_error[masked]
+      out.update(regions.split_metrics(squared_error=error, region=masks > 0, inside="fg",
+                                       outside="bg"))
       border = regions.object_border(masks, regions.border_radius(masks.shape[-1]))
-      far = (masks == 0) & ~border
-      out.update(regions.region_metrics(squared_error=squared_error[masked], region=border,
-                                        name="border"))
-      out["psnr_novel_bg_far"] = regions.pooled_psnr(squared_error[masked], far)
+      out.update(regions.region_metrics(squared_error=error, region=border, name="border"))
+      out["psnr_novel_bg_far"] = regions.pooled_psnr(error, (masks == 0) & ~border)
   return out
 
 
