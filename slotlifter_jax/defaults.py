@@ -76,6 +76,10 @@ def base_config() -> ml_collections.ConfigDict:
   # horizontal slab (model.SlotLifter.ray_interval). () = all of [near, far] (the paper's).
   r.z_bounds = ()
   r.chunk = 4096  # rays per chunk when rendering a full view
+  # Full views (eval, validation, pictures) average S×S rays per pixel on a regular grid inside it,
+  # as the embedded set's pixels are made (rendering/views.py); S² times the work. 1: one ray
+  # through the centre, the paper's.
+  r.supersample = 1
   # Adaptive full-view rendering in --mode=eval and --mode=render (slotlifter_jax/rendering/adaptive.py,
   # issue #7): the decoder runs the whole grid on every stride-th pixel only and a window of
   # `adaptive_window` grid samples elsewhere. Off: every pixel on the whole grid (exact).

@@ -304,6 +304,12 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
     raise FileNotFoundError(f"{ckpt_lib.config_path(workdir)}: not found; {workdir} is not a "
                             f"training run directory (train it first with --mode=train)")
   ckpt_lib.check_compatible(config, saved, workdir)
+  try:  # render settings are read when the first scene renders: fail before any work instead
+    views_lib.check_supersample(config.render)
+    if config.render.get("adaptive", False):
+      adaptive.AdaptiveSettings.from_config(config)
+  except ValueError as e:
+    raise EvalSetupError(str(e)) from e
   differs = differences_from_training(config, saved)
   config = multihost.primary_first(lambda: embedded.resolve_data(config), "data")  # generated once
   scenes = registry.load_split(config.data, split, max_scenes=max_scenes)

@@ -21,6 +21,7 @@ from typing import NamedTuple, Optional, Sequence
 import flax.struct
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 # Depth below which a camera-space point counts as "at or behind the camera" when dividing by z; the
 # official projector clamps z to the same value. Such points are always marked invalid by callers.
@@ -57,6 +58,19 @@ def image_pixels(height: int, width: int) -> jax.Array:
   v, u = jnp.meshgrid(
       jnp.arange(height, dtype=jnp.float32), jnp.arange(width, dtype=jnp.float32), indexing="ij")
   return jnp.stack([u, v], axis=-1)  # [H, W, 2]
+
+
+def subpixel_offsets(per_side: int) -> np.ndarray:
+  """[S·S, 2] (du, dv) from a pixel's centre: the centres of an S×S grid of equal cells inside it.
+
+  The embedded generator averages these rays per pixel (anti-aliasing) and full-view rendering
+  can do the same (`render.supersample`); S = 1 gives the centre alone.
+  """
+  if int(per_side) < 1:
+    raise ValueError(f"sub-pixel grid of {per_side} per side; it must be ≥ 1")
+  g = (np.arange(per_side) + 0.5) / per_side - 0.5
+  du, dv = np.meshgrid(g, g, indexing="xy")
+  return np.stack([du.ravel(), dv.ravel()], axis=-1).astype(np.float32)
 
 
 def pix_to_cam(*, pix: jax.Array, intrinsics: jax.Array, xp=jnp) -> jax.Array:

@@ -35,6 +35,7 @@ from slotlifter_jax.data import device_sampler
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import pipeline
 from slotlifter_jax.data import registry
+from slotlifter_jax.rendering import views as views_lib
 
 
 class NonFiniteError(RuntimeError):
@@ -251,6 +252,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   _check_rates(config.train)
   _check_selection(config.train)
   _check_restarts(config.train)
+  try:
+    views_lib.check_supersample(config.render)  # validation renders with it
+  except ValueError as e:
+    raise ConfigError(str(e)) from e
   saved = ckpt_lib.load_saved_config(workdir)
   ckpt_lib.check_compatible(config, saved, workdir)
   # After a restart the folder holds an attempt with another seed: resuming continues it exactly.

@@ -148,6 +148,8 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
      "train.select_by must be one of ('nv_ari', 'min_fg_nv', 'psnr_novel'), got 'fg_ari'"),
     (["--config=configs/clevr.py:smoke", "--config.train.restart_check_step=4"],
      "train.restart_check_step=4 must be 0 (no check) or a multiple of train.eval_every=3"),
+    (["--config=configs/clevr.py:smoke", "--config.render.supersample=0"],
+     "render.supersample is 0; it must be an integer ≥ 1"),
 ])
 def test_a_bad_command_line_gets_one_line_and_creates_nothing(tmp_path, args, message):
   shutil.copytree(os.path.join(REPO, "configs"), tmp_path / "configs")

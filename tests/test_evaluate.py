@@ -97,6 +97,27 @@ def test_render_cameras_covers_every_pixel_once_in_order(height, width, chunk):
     np.testing.assert_allclose(first[c], rays.directions[:, 0], atol=1e-6)
 
 
+@pytest.mark.parametrize("supersample", [2, 3])
+def test_render_cameras_supersample_is_the_footprint_mean(supersample):
+  """With S×S rays per pixel each result is their mean: for a value u² of the ray's image
+  column, the mean over the grid's columns c + δ is c² + (S² − 1)/(12 S²), δ at the cells'
+  centres (the variance of S equally spaced points of spacing 1/S)."""
+  cam = look_at(np.array([2.0, 0.5, 1.0]))
+  height, width = 3, 4
+  intr = np.array([[4.0, 0, 1.5], [0, 4.0, 1.0], [0, 0, 1]], np.float32)
+
+  def column_squared(origins, directions):  # the image column the ray goes through, squared
+    d_cam = jnp.einsum("ji,crj->cri", jnp.asarray(cam[:3, :3], jnp.float32), directions)
+    u = intr[0, 0] * d_cam[..., 0] / d_cam[..., 2] + intr[0, 2]
+    return (u ** 2,)
+
+  (got,) = views_lib.render_cameras(column_squared, cam_to_world=cam[None], intrinsics=[intr],
+                                    height=height, width=width, chunk=5, supersample=supersample)
+  columns = np.tile(np.arange(width, dtype=np.float64), height)  # row-major
+  expected = columns ** 2 + (supersample ** 2 - 1) / (12 * supersample ** 2)
+  np.testing.assert_allclose(got[0], expected, atol=1e-4)
+
+
 def test_scene_metrics_splits_views_and_skips_as_the_protocol_says():
   rng = np.random.default_rng(0)
   scene = _toy_scene(rng)
@@ -328,6 +349,17 @@ def test_eval_refuses_other_model_config(run_dir):
   config = load_config()
   config.model.num_slots = 5
   with pytest.raises(ckpt_lib.CheckpointMismatchError, match="model.num_slots"):
+    evaluate.evaluate_split(config, run_dir, split="val", progress=False)
+
+
+def test_eval_refuses_bad_render_settings_before_any_work(run_dir):
+  config = load_config()
+  config.render.supersample = 0
+  with pytest.raises(evaluate.EvalSetupError, match="render.supersample is 0"):
+    evaluate.evaluate_split(config, run_dir, split="val", progress=False)
+  config = load_config()
+  config.render.update(supersample=2, adaptive=True, z_bounds=())
+  with pytest.raises(evaluate.EvalSetupError, match="render.supersample=2 is not supported"):
     evaluate.evaluate_split(config, run_dir, split="val", progress=False)
 
 

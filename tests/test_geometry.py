@@ -322,3 +322,20 @@ def test_samples_in_a_slab_render_its_closed_form_opacity():
   length = (z_max - z_min) / np.abs(np.asarray(dirs[:, 2]))  # both rays cross the whole slab
   expected = 1.0 - np.exp(-25.0 * sigma * (s - 1) * length / s)
   np.testing.assert_allclose(np.asarray(out.opacity), expected, rtol=1e-5)
+
+
+@pytest.mark.parametrize("per_side", [1, 2, 3, 4])
+def test_subpixel_offsets_are_the_cell_centres_of_the_pixel(per_side):
+  offsets = geometry.subpixel_offsets(per_side)
+  assert offsets.shape == (per_side ** 2, 2)
+  # Each offset is the centre of its own cell of side 1/S inside [-1/2, 1/2]².
+  cells = np.floor((offsets + 0.5) * per_side).astype(int)
+  assert len({tuple(c) for c in cells}) == per_side ** 2
+  np.testing.assert_allclose(offsets, (cells + 0.5) / per_side - 0.5, atol=1e-7)
+  if per_side == 2:
+    np.testing.assert_array_equal(np.sort(offsets[:, 0]), [-0.25, -0.25, 0.25, 0.25])
+
+
+def test_subpixel_offsets_refuse_an_empty_grid():
+  with pytest.raises(ValueError, match="≥ 1"):
+    geometry.subpixel_offsets(0)

@@ -30,8 +30,7 @@ from slotlifter_jax.data.raycaster import (
     TEX_PLAIN, TEX_STRIPES, TEX_TILES, TEX_WOOD, TEXTURE_IDS, UNBOUNDED, WALLS, Hit, RenderOptions,
     SceneArrays, Vec, intersect_primitives, render_options, scene_arrays, surface_normals, trace)
 from slotlifter_jax.data.shading import (SKY_LINEAR, SURFACE_OFFSET, Render, camera_rays,
-                                         render_centre, render_views, shade, supersample_offsets,
-                                         value_noise)
+                                         render_centre, render_views, shade, value_noise)
 from slotlifter_jax.data.writer import (PNG_COMPRESS_LEVEL, GeneratedScene, _split_header,
                                         generate_dataset, generate_scene, mask_to_grey_rgb,
                                         scene_rng, view_stem)

@@ -234,13 +234,6 @@ def camera_rays(*, cam_to_world: jax.Array, intrinsics: jax.Array, image_size: i
   return origins, dirs
 
 
-def supersample_offsets(supersample: int) -> np.ndarray:
-  """[A, 2] sub-pixel offsets of a regular supersample×supersample grid inside the pixel."""
-  g = (np.arange(supersample) + 0.5) / supersample - 0.5
-  du, dv = np.meshgrid(g, g, indexing="xy")
-  return np.stack([du.ravel(), dv.ravel()], axis=-1).astype(np.float32)
-
-
 @flax.struct.dataclass
 class Render:
   rgb: jax.Array  # [N, H, W, 3] gamma-encoded in [0, 1]
@@ -278,7 +271,7 @@ _stage_add_reflection = jax.jit(_add_reflection)
 def _stage_rays(cam_to_world, intrinsics, *, image_size: int, supersample: int):
   origins, dirs = camera_rays(cam_to_world=cam_to_world, intrinsics=intrinsics,
                               image_size=image_size,
-                              offsets=jnp.asarray(supersample_offsets(supersample)))
+                              offsets=jnp.asarray(geometry.subpixel_offsets(supersample)))
   return _unstack(origins.reshape(-1, 3)), _unstack(dirs.reshape(-1, 3))  # 3 × [R]
 
 

@@ -258,6 +258,9 @@ class AdaptiveSettings:
     if tuple(r.get("z_bounds", ())):
       raise ValueError("render.adaptive: render.z_bounds gives every ray its own sample interval, "
                        "the adaptive renderer shares one grid; set render.adaptive=False")
+    if views_lib.check_supersample(r) > 1:
+      raise ValueError(f"render.adaptive: render.supersample={r.supersample} is not supported by "
+                       "the adaptive renderer (one ray per pixel); set one of them back")
     settings = cls(stride=int(r.adaptive_stride), window=int(r.adaptive_window),
                    mass_eps=float(r.adaptive_mass_eps), fallback=bool(r.adaptive_fallback),
                    num_samples=int(r.num_samples), chunk=int(r.chunk))

@@ -148,6 +148,7 @@ class SlotRenderer:
   def __init__(self, model: model_lib.SlotLifter, config: ml_collections.ConfigDict):
     self.signed = config.model.colour_range == "signed"
     self.chunk = int(config.render.chunk)
+    self.supersample = views_lib.check_supersample(config.render)
     self.adaptive = None
     if config.render.get("adaptive", False):
       if int(config.render.num_fine_samples) > 0:
@@ -197,7 +198,7 @@ class SlotRenderer:
     colour, depth, seg, slots = views_lib.render_cameras(
         lambda o, d: self._render_chunk(params, encoded, sources, o, d),
         cam_to_world=cam_to_world, intrinsics=intrinsics, height=height, width=width,
-        chunk=self.chunk)
+        chunk=self.chunk, supersample=self.supersample)
     k = seg.shape[-1]
     return CameraRenders(colour=colour.reshape(-1, height, width, 3),
                          depth=depth.reshape(-1, height, width),

@@ -54,29 +54,47 @@ def make_encode(model):
       {"params": params}, **sources, slot_noise_sigma=0.0, train=False, method=model.encode))
 
 
+def check_supersample(render) -> int:
+  """`render.supersample` as an int; ValueError naming the field unless it is an integer ≥ 1."""
+  value = render.get("supersample", 1)
+  if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    raise ValueError(f"render.supersample is {value!r}; it must be an integer ≥ 1")
+  return value
+
+
 def render_cameras(render_chunk, *, cam_to_world, intrinsics, height: int, width: int,
-                   chunk: int) -> list[np.ndarray]:
+                   chunk: int, supersample: int = 1) -> list[np.ndarray]:
   """Every pixel of each camera through `render_chunk(origins [1, chunk, 3], directions)`.
 
   `render_chunk` returns a tuple of [1, chunk, ...] arrays; the result holds, per tuple entry, an
   array [n, H·W, ...]. The last chunk repeats its last ray, so one compiled shape serves any size,
   and cameras go one at a time to bound memory. The chunk shrinks to H·W for a smaller view: a
   32² view padded to a 4096-ray chunk cost as much as a 64² one (experiments/README.md, pareto).
+
+  supersample S > 1: each entry is the mean of S×S rays per pixel (`geometry.subpixel_offsets`),
+  the footprint average that the embedded generator records as a pixel's colour; S² times the
+  work. A model trained on centre rays gains little from it (experiments/README.md, "Twenty-fourth
+  round").
   """
-  pix = geometry.image_pixels(height, width).reshape(-1, 2)  # [H·W, 2]
+  centres = geometry.image_pixels(height, width).reshape(-1, 2)  # [H·W, 2]
+  offsets = geometry.subpixel_offsets(supersample)
   n = height * width
   chunk = min(int(chunk), n)
   pad = (-n) % chunk
   per_camera = []
   for c2w, k in zip(cam_to_world, intrinsics):
-    rays = geometry.pixel_rays(cam_to_world=jnp.asarray(c2w, jnp.float32),
-                               intrinsics=jnp.asarray(k, jnp.float32), pix=pix)
-    origins = jnp.concatenate([rays.origins, jnp.repeat(rays.origins[-1:], pad, 0)])
-    directions = jnp.concatenate([rays.directions, jnp.repeat(rays.directions[-1:], pad, 0)])
-    parts = [render_chunk(origins[None, s:s + chunk], directions[None, s:s + chunk])
-             for s in range(0, n + pad, chunk)]
-    per_camera.append([np.concatenate([np.asarray(p[i][0]) for p in parts])[:n]
-                       for i in range(len(parts[0]))])
+    total = None
+    for offset in offsets:
+      rays = geometry.pixel_rays(cam_to_world=jnp.asarray(c2w, jnp.float32),
+                                 intrinsics=jnp.asarray(k, jnp.float32), pix=centres + offset)
+      origins = jnp.concatenate([rays.origins, jnp.repeat(rays.origins[-1:], pad, 0)])
+      directions = jnp.concatenate([rays.directions, jnp.repeat(rays.directions[-1:], pad, 0)])
+      parts = [render_chunk(origins[None, s:s + chunk], directions[None, s:s + chunk])
+               for s in range(0, n + pad, chunk)]
+      out = [np.concatenate([np.asarray(p[i][0]) for p in parts])[:n]
+             for i in range(len(parts[0]))]
+      total = out if total is None else [t + o for t, o in zip(total, out)]
+    per_camera.append(total if len(offsets) == 1 else [t / len(offsets) for t in total])
   return [np.stack([c[i] for c in per_camera]) for i in range(len(per_camera[0]))]
 
 
@@ -87,6 +105,7 @@ class SceneRenderer:
     self.model = model
     self.signed = config.model.colour_range == "signed"
     self.chunk = int(config.render.chunk)
+    self.supersample = check_supersample(config.render)
     self.num_source_views = int(config.data.num_source_views)
 
     @jax.jit
@@ -114,7 +133,7 @@ class SceneRenderer:
     colour, depth, seg = render_cameras(
         lambda o, d: self._render_chunk(params, encoded, sources, o, d, jnp.asarray(locality)),
         cam_to_world=scene.cam_to_world[views], intrinsics=scene.intrinsics[views],
-        height=height, width=width, chunk=self.chunk)
+        height=height, width=width, chunk=self.chunk, supersample=self.supersample)
     n = len(views)
     colours, depths = colour.reshape(n, height, width, -1), depth.reshape(n, height, width)
     segs = seg.reshape(n, height, width, -1)
