@@ -94,7 +94,7 @@ def render_cameras(render_chunk, *, cam_to_world, intrinsics, height: int, width
       out = [np.concatenate([np.asarray(p[i][0]) for p in parts])[:n]
              for i in range(len(parts[0]))]
       total = out if total is None else [t + o for t, o in zip(total, out)]
-    per_camera.append(total if len(offsets) == 1 else [t / len(offsets) for t in total])
+    per_camera.append([t / len(offsets) for t in total])  # exact for S = 1
   return [np.stack([c[i] for c in per_camera]) for i in range(len(per_camera[0]))]
 
 
