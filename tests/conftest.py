@@ -4,6 +4,7 @@
 - One persistent XLA compilation cache for the whole session (this process and the subprocesses
   the tests start): the smoke model is compiled by many tests with the same shapes, and on a 2-core
   CPU compilation, not execution, is what most of these tests spend their time on.
+- The heaviest files are collected first (HEAVIEST_FIRST).
 """
 
 import os
@@ -15,6 +16,24 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:  # set before any test module 
   os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
 
 import pytest  # noqa: E402
+
+# pytest-xdist (`--dist loadfile`) hands out whole files, in collection order, to whichever worker
+# asks next. Its default order (most tests first) put the few files that train whole runs last,
+# where one of them kept a worker busy for minutes while the others had nothing left to do. Started
+# first (heaviest first: longest-processing-time scheduling), they run beside the many light files,
+# which fill the gaps. Order from the per-file sums of `pytest --durations=60` on the 2-core CPU
+# (2026-11-27); files not listed follow in their usual order. pyproject.toml passes
+# --no-loadscope-reorder so that xdist keeps this order.
+HEAVIEST_FIRST = (
+    "test_train_resume.py", "test_train.py", "test_cli.py", "test_evaluate.py",
+    "test_distributed.py", "test_device_sampler.py", "test_model.py", "test_data_parallel.py",
+    "test_bf16.py", "test_decoder.py", "test_restarts.py", "test_adaptive.py", "test_study.py",
+)
+
+
+def pytest_collection_modifyitems(items):
+  rank = {name: i for i, name in enumerate(HEAVIEST_FIRST)}
+  items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: ties keep their order
 
 
 @pytest.fixture(scope="session", autouse=True)

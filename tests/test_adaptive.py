@@ -17,7 +17,7 @@ from slotlifter_jax.data.types import Scene
 from slotlifter_jax.rendering import adaptive
 from slotlifter_jax.rendering import views as views_lib
 from slotlifter_jax.rendering import volume
-from test_train import load_config
+from train_helpers import load_config
 
 NEAR, FAR = 6.0 / 7.0, 20.0 / 7.0
 SCALE = 25.0

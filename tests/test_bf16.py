@@ -47,7 +47,7 @@ from slotlifter_jax import defaults
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import schedules
 from slotlifter_jax import train_step as step_lib
-from test_train import fake_batch, load_config
+from train_helpers import fake_batch, load_config
 
 # bfloat16 unit roundoff: 8 significant bits.
 U_BF16 = 2.0 ** -8

@@ -89,7 +89,7 @@ def _state(workdir, step):
   """The checkpointed train state of `step`, restored on this process's one device."""
   sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
   import jax
-  from test_train import fake_batch, load_config
+  from train_helpers import fake_batch, load_config
   from slotlifter_jax import checkpoints as ckpt_lib
   from slotlifter_jax import model as model_lib
   from slotlifter_jax import train_step as step_lib
@@ -117,7 +117,7 @@ def runs(tmp_path_factory):
   root = tmp_path_factory.mktemp("distributed")
   # The embedded set is generated here, once: two processes generating one folder would race.
   sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-  from test_train import load_config
+  from train_helpers import load_config
   from slotlifter_jax.data import embedded
   embedded.resolve_data(load_config())
   two, one = str(root / "two"), str(root / "one")

@@ -21,7 +21,6 @@ from sklearn.metrics import adjusted_rand_score
 
 from data_fixtures import look_at
 from slotlifter_jax import checkpoints as ckpt_lib
-from slotlifter_jax import decoder as decoder_lib
 from slotlifter_jax import evaluate
 from slotlifter_jax import geometry
 from slotlifter_jax import train
@@ -33,7 +32,7 @@ from slotlifter_jax.data.types import Scene
 from slotlifter_jax.rendering import pictures
 from slotlifter_jax.rendering import views as views_lib
 from slotlifter_jax.rendering import volume
-from test_train import load_config
+from train_helpers import load_config
 
 # ---------------------------------------------------------------------------------------------
 # scene_metrics on made-up renderings (no model)

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from slotlifter_jax import geometry
 from slotlifter_jax import lifting
 from random_cameras import random_cameras
 

@@ -129,7 +129,8 @@ def test_finished_run_is_skipped_and_trained_run_only_evaluated(smoke_run, monke
 
 def test_signal_during_training_stops_the_study_with_one_line(tmp_path, monkeypatch):
   # Training stands in for a run a user stops with ^C at step 4: train.train_and_evaluate raises
-  # Interrupted after its checkpoint, as the real loop does (tests/test_train.py covers that part).
+  # Interrupted after its checkpoint, as the real loop does (tests/test_train_resume.py covers
+  # that part).
   def interrupted_training(config, workdir):
     os.makedirs(os.path.join(workdir, "checkpoints", "latest", "4"))
     raise train.Interrupted(2, 4)
