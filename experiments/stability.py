@@ -25,7 +25,9 @@ A finished run is skipped, so running the script again resumes where it stopped.
 With --workdirs the script trains nothing: it summarises finished runs of --config, one per seed,
 that were trained with `python -m slotlifter_jax.main --config=... --config.seed=N --workdir=DIR`.
 Each must match --config in every field that changes training and have trained its full budget;
-its evaluation is reused or written (experiments/study_workdirs.py says what is checked).
+its evaluation is reused or written (experiments/study_workdirs.py says what is checked). A run
+that restarted (`train.restarts`) counts as the seed its command named; the per-seed table shows
+the seed it ended with and its number of attempts.
 """
 
 from __future__ import annotations
@@ -65,19 +67,28 @@ def table(rows: list[dict], *, config: str = ablations.BASE) -> str:
          f"{time.strftime('%Y-%m-%d %H:%M')}.\n",
          st.markdown_table(groups, columns=COLUMNS, extremes=True), "",
          "Per seed:\n"]
-  head = ["seed"] + [h for _, h, _, _ in COLUMNS] + ["collapsed", "train s", "run"]
+  head = ["seed"] + [h for _, h, _, _ in COLUMNS] + ["collapsed", "attempts", "train s", "run"]
   out.append("| " + " | ".join(head) + " |")
   out.append("|" + "---|" * len(head))
-  for r in sorted(rows, key=lambda r: int(r["seed"])):
-    cells = [str(r["seed"])]
+  for r in sorted(rows, key=_command_seed):
+    # A run that restarted (--workdirs) shows the command's seed and the one it ended with.
+    seed = int(r["seed"])
+    cells = [str(seed) if _command_seed(r) == seed else f"{_command_seed(r)} → {seed}"]
     cells += [st.format_value(r.get(m, math.nan), digits=digits, scale=scale)
               for m, _, scale, digits in COLUMNS]
     flag = r.get("collapsed", math.nan)
     cells.append("–" if flag in ("", None) or math.isnan(float(flag)) else
                  ("yes" if float(flag) == 1.0 else "no"))
+    attempts = r.get("attempts", "")
+    cells.append("–" if attempts in ("", None) else str(int(float(attempts))))
     cells += [f"{float(r['train_s']):.0f}", str(r["run_id"])]
     out.append("| " + " | ".join(cells) + " |")
   return "\n".join(out) + "\n"
+
+
+def _command_seed(row: dict) -> int:
+  first = row.get("command_seed", "")
+  return int(float(row["seed"] if first in ("", None) else first))
 
 
 def parse_args(argv=None):
@@ -124,7 +135,9 @@ def main_workdirs(args) -> None:
     if args.dry_run:
       for d in dirs:
         config = sw.check_workdir(d, args.config)
-        print(f"  seed {config.seed}  {d}  trained {config.train.num_steps} steps")
+        attempts, seed = sw.attempts_and_command_seed(d, int(config.seed))
+        tried = f" (attempt {attempts}: seed {config.seed})" if attempts > 1 else ""
+        print(f"  seed {seed}{tried}  {d}  trained {config.train.num_steps} steps")
       print(f"{len(dirs)} finished runs; only their evaluations (if missing) would run")
       return
     if args.table_only:

@@ -9,6 +9,11 @@ with one line naming its directory and the problem:
     seed and the fields that cannot change the trained parameters (NOT_TRAINING: how often it
     validated, logged or checkpointed, and how it picked its best checkpoint); a field the saved
     config lacks was added to the code later and reads as its default, as on resume;
+  - a run that restarted (`train.restarts`, slotlifter_jax/restarts.py) saved its last attempt's
+    seed and the restarts it had left: each attempt archived under DIR/restarted/ spent one, so
+    the named config's count less the archived attempts must equal the saved one. Its row keeps
+    the command's seed (`command_seed`, the first attempt's), the seed whose parameters it
+    evaluates (`seed`) and the number of attempts, so a restarted seed is counted once and seen;
   - its last checkpoint is the config's full budget (`train.num_steps`);
   - its evaluation is of that checkpoint on the requested number of scenes: an existing
     DIR/eval/<split>/metrics.json is reused when it is, refused (never overwritten) when it is
@@ -52,6 +57,7 @@ def check_workdir(run_dir: str, config_spec: str):
   """The run's config (the named one with its seed and resolved data), after the checks of the
   module docstring that need no evaluation; raises StudyError naming the problem."""
   from slotlifter_jax import checkpoints
+  from slotlifter_jax import restarts
   from slotlifter_jax.data import embedded
   if not os.path.isdir(run_dir):
     raise sc.StudyError(f"--workdirs: {run_dir} is not a directory")
@@ -60,6 +66,7 @@ def check_workdir(run_dir: str, config_spec: str):
     raise sc.StudyError(f"{run_dir}: no config.json; not a training run directory")
   config = sc.load_config(config_spec)
   config.seed = int(saved.get("seed", 0))
+  config.train.restarts = int(config.train.restarts) - len(restarts.archived_attempts(run_dir))
   config = embedded.resolve_data(config)  # the embedded set's path, as the run saved it
   diffs = training_differences(saved, config)
   if diffs:
@@ -92,10 +99,17 @@ def _evaluation(config, run_dir: str, *, split: str, eval_scenes: Optional[int],
   return result
 
 
+def attempts_and_command_seed(run_dir: str, seed: int) -> tuple[int, int]:
+  """(attempts, the seed the command named) of a run whose last attempt trained `seed`."""
+  from slotlifter_jax import restarts
+  archived = restarts.archived_attempts(run_dir)
+  return 1 + len(archived), (restarts.attempt_seed(archived[0]) if archived else seed)
+
+
 def workdir_row(run_dir: str, config, *, config_spec: str, study: str, name: str,
                 eval_split: str, eval_scenes: Optional[int], progress: bool = True) -> dict:
-  """One study row (study_common.CSV_COLUMNS) for a finished run trained by the entry point;
-  `config` is what `check_workdir(run_dir, config_spec)` returned."""
+  """One study row (study_common.CSV_COLUMNS, and `attempts`, `command_seed`) for a finished run
+  trained by the entry point; `config` is what `check_workdir(run_dir, config_spec)` returned."""
   from slotlifter_jax import collapse
   result = _evaluation(config, run_dir, split=eval_split, eval_scenes=eval_scenes,
                        progress=progress)
@@ -110,6 +124,7 @@ def workdir_row(run_dir: str, config, *, config_spec: str, study: str, name: str
       checkpoint_step=int(result["checkpoint"]["step"]),
       render_per_view_s=float(result["timing"]["render_per_view_s"]),
       eval_s=float(result["timing"]["total_s"]))
+  row["attempts"], row["command_seed"] = attempts_and_command_seed(run_dir, int(config.seed))
   for k in sc.METRIC_KEYS:
     value = result["metrics"].get(k, {}).get("mean")
     row[k] = math.nan if value is None else float(value)
@@ -119,12 +134,13 @@ def workdir_row(run_dir: str, config, *, config_spec: str, study: str, name: str
 
 def workdir_rows(run_dirs, **kwargs) -> list[dict]:
   """`workdir_row` for each directory; every directory is checked before any is evaluated, and
-  two runs with one seed are refused (they would count one seed twice)."""
+  two runs of one command seed are refused (they would count one seed twice)."""
   configs, seen = [], {}
   for d in run_dirs:
     config = check_workdir(d, kwargs["config_spec"])
-    if config.seed in seen:
-      raise sc.StudyError(f"--workdirs: {seen[config.seed]} and {d} are both seed {config.seed}")
-    seen[config.seed] = d
+    _, seed = attempts_and_command_seed(d, int(config.seed))
+    if seed in seen:
+      raise sc.StudyError(f"--workdirs: {seen[seed]} and {d} are both seed {seed}")
+    seen[seed] = d
     configs.append(config)
   return [workdir_row(d, config, **kwargs) for d, config in zip(run_dirs, configs)]

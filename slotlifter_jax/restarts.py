@@ -61,10 +61,11 @@ def archived_attempts(workdir: str) -> list[str]:
   for name in (RESTARTED_DIR,) + _LEGACY_DIRS:
     found += glob.glob(os.path.join(workdir, name, "seed_*"))
   # Each attempt's seed is larger than the one before it.
-  return sorted(found, key=_attempt_seed)
+  return sorted(found, key=attempt_seed)
 
 
-def _attempt_seed(folder: str) -> int:
+def attempt_seed(folder: str) -> int:
+  """The seed an archived attempt (DIR/restarted/seed_<seed>) trained with."""
   return int(os.path.basename(folder).removeprefix("seed_"))
 
 
@@ -86,7 +87,7 @@ def resumed_seed(config: ml_collections.ConfigDict, saved: Optional[dict],
     return config
   new = ml_collections.ConfigDict(config.to_dict())
   if saved is None:
-    new.seed = _attempt_seed(attempts[-1]) + SEED_STRIDE
+    new.seed = attempt_seed(attempts[-1]) + SEED_STRIDE
     new.train.restarts = max(int(config.train.restarts) - len(attempts), 0)
   else:
     new.seed = int(saved["seed"])

@@ -385,13 +385,17 @@ def test_diagnose_slots_runs_on_a_trained_run(smoke_run, capsys):
 # stability.py --workdirs: seeds trained with the entry point (experiments/study_workdirs.py).
 
 
-def _finished_run(path, *, seed, fg_ari, psnr, step=6, collapsed=0.0, scenes=2, **changes):
+def _finished_run(path, *, seed, fg_ari, psnr, step=6, collapsed=0.0, scenes=2, spec=SMOKE,
+                  archived=(), **changes):
   """A run directory as `slotlifter_jax.main` leaves it after the smoke budget, with evaluation
-  numbers chosen by hand (no training: the checks and the row read only these files)."""
+  numbers chosen by hand (no training: the checks and the row read only these files); `archived`
+  names the seeds of attempts that restarted, kept as DIR/restarted/seed_<seed>/."""
   from slotlifter_jax import checkpoints
   from slotlifter_jax.data import embedded
-  config = sc.load_config(SMOKE)
+  config = sc.load_config(spec)
   config.seed = seed
+  for s in archived:
+    os.makedirs(path / restarts.RESTARTED_DIR / f"seed_{s}" / "checkpoints")
   for key, value in changes.items():
     section, field = key.split("__")
     config[section][field] = value
@@ -444,6 +448,35 @@ def test_workdir_rows_read_the_runs_and_refuse_what_is_not_one_config(tmp_path):
   refused(r"a/eval/test/metrics.json: evaluates step 6 on 2 scenes, not .* 6 on 3", [a],
           eval_scenes=3)
   assert (a / "eval" / "test" / "metrics.json").read_text() == before
+
+
+def test_a_restarted_run_counts_as_its_command_seed(tmp_path):
+  """`train.restarts`: seed 1's first attempt was abandoned and seed 1001 trained the run, which
+  then had one of fast's two restarts left."""
+  from experiments import study_workdirs as sw
+  spec = "configs/clevr.py:fast+smoke"
+  kwargs = dict(config_spec=spec, study="stability", name="full", eval_split="test",
+                eval_scenes=2)
+  plain = _finished_run(tmp_path / "s0", seed=0, fg_ari=0.8, psnr=20.0, spec=spec)
+  restarted = _finished_run(tmp_path / "s1", seed=1001, fg_ari=0.6, psnr=22.0, spec=spec,
+                            archived=(1,), train__restarts=1)
+  rows = sw.workdir_rows([str(plain), str(restarted)], **kwargs)
+  assert [(r["seed"], r["command_seed"], r["attempts"]) for r in rows] == [(0, 0, 1),
+                                                                           (1001, 1, 2)]
+  table = stability.table(rows, config=spec)
+  assert "| 1 → 1001 | 22.00 |" in table and "| no | 2 |" in table and "| 0 | 20.00 |" in table
+
+  def refused(match, dirs):
+    with pytest.raises(sc.StudyError, match=match):
+      sw.workdir_rows([str(d) for d in dirs], **kwargs)
+
+  # An archived attempt that did not spend a restart is not a run of this command.
+  refused(r"/s2: trained with train.restarts=2, but configs/clevr.py:fast\+smoke has 1",
+          [_finished_run(tmp_path / "s2", seed=1002, fg_ari=0.5, psnr=20.0, spec=spec,
+                         archived=(2,))])
+  # A plain seed-1 run beside the restarted one would count seed 1 twice.
+  refused(r"/s1 and .*/s1b are both seed 1",
+          [restarted, _finished_run(tmp_path / "s1b", seed=1, fg_ari=0.5, psnr=20.0, spec=spec)])
 
 
 def test_stability_cli_summarises_workdirs(tmp_path):
