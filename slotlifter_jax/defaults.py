@@ -18,6 +18,9 @@ def base_config() -> ml_collections.ConfigDict:
   m.encoder_stem_width = 64
   m.encoder_widths = (64, 128, 256)  # layer1..layer3 channels
   m.encoder_blocks = (3, 4, 6)  # BasicBlocks per layer: ResNet-34 layout
+  # Feature map h×w = H/4×W/4 (the paper's); 2 adds a decoder stage to H/2×W/2 (encoder.py), an
+  # option of this repository.
+  m.encoder_output_stride = 4
   m.num_slots = 8  # K (the empty slot is extra)
   m.slot_dim = 256
   m.slot_iters = 3

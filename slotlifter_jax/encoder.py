@@ -1,7 +1,8 @@
 """The image encoder: an IBRNet-style ResUNet trained from scratch (docs/method.md §1.1).
 
 Shapes: N images (N = B·V when the model encodes every source view of every scene at once),
-H×W image size, h×w = ceil(H/4)×ceil(W/4) feature-map size, D feature width, C channels.
+H×W image size, h×w = ceil(H/s)×ceil(W/s) feature-map size (output stride s = 4, or 2), D feature
+width, C channels.
 
 Layout (ResNet BasicBlocks, layer4 unused, no max-pool):
 
@@ -11,7 +12,13 @@ Layout (ResNet BasicBlocks, layer4 unused, no max-pool):
     layer3 (blocks[2] × BasicBlock, stride 2) ─────────── x3           [N, H/16, W/16, 256]
     up(x3) → 3×3 conv 256→128 → IN → ELU; [up, x2] → 3×3 conv → 128 → IN → ELU
     up(·)  → 3×3 conv 128→64  → IN → ELU; [up, x1] → 3×3 conv → D   → IN → ELU
-    1×1 conv D → D ─────────────────────────────────────────────────── [N, H/4, W/4, D]
+   (output_stride 2 only: up(·) → 3×3 conv → D → IN → ELU; [up, stem] → 3×3 conv → D → IN → ELU)
+    1×1 conv D → D ────────────────────────────────────── [N, H/s, W/s, D], s = output_stride
+
+The paper's map is a quarter of the image (output_stride 4). output_stride 2 is an option of this
+repository, not the paper's: one more decoder stage joins the stem's half-resolution output, so a
+64 px CLEVR object, one or two cells of a 16×16 map, covers four times as many cells, for slot
+attention and for the features lifted at its outline.
 
 Every convolution pads by reflection (the official code's `padding_mode='reflect'`); the stem and the
 residual-block convolutions have no bias, the decoder's convolutions and the final 1×1 do. IN is
@@ -19,7 +26,7 @@ InstanceNorm with affine parameters (GroupNorm with one channel per group, ε = 
 "up" is bilinear resampling with align_corners=True semantics; for H, W divisible by 16 it is exactly
 ×2 as in the official code. For other sizes the official code upsamples ×2 and zero-pads the skip
 tensor to match (e.g. 300×400 DTU images give a 76×100 map whose last row sees a zero skip); we
-instead resample to the skip tensor's size, so the map is always ceil(H/4)×ceil(W/4) and its pixel
+instead resample to the skip tensor's size, so the map is always ceil(H/s)×ceil(W/s) and its pixel
 grid spans the image exactly as the lifting step (docs/method.md §1.3) assumes.
 
 Weights use PyTorch's default convolution init (uniform ±1/√fan_in for kernel and bias), since the
@@ -150,12 +157,23 @@ class ConvNormElu(nn.Module):
     return nn.elu(instance_norm("norm", self.dtype)(x))
 
 
+OUTPUT_STRIDES = (4, 2)
+
+
+def check_output_stride(stride) -> None:
+  """ValueError naming `model.encoder_output_stride` unless it is one of OUTPUT_STRIDES."""
+  if stride not in OUTPUT_STRIDES:
+    raise ValueError(f"model.encoder_output_stride is {stride!r}; it must be one of "
+                     f"{OUTPUT_STRIDES} (4 is the paper's)")
+
+
 class ResUNet(nn.Module):
-  """[N, H, W, C_in] → [N, ceil(H/4), ceil(W/4), out_dim] (see the module docstring)."""
+  """[N, H, W, C_in] → [N, ceil(H/s), ceil(W/s), out_dim], s = output_stride (module docstring)."""
   out_dim: int = 64
   stem_width: int = 64
   widths: Sequence[int] = (64, 128, 256)
   blocks: Sequence[int] = (3, 4, 6)
+  output_stride: int = 4
   dtype: Any = jnp.float32  # computation dtype (see the module docstring); the output is in it
 
   @nn.compact
@@ -165,7 +183,9 @@ class ResUNet(nn.Module):
                        f"blocks={self.blocks}")
     x = ReflectConv(self.stem_width, 7, 2, use_bias=False, dtype=self.dtype,
                     name="stem_conv")(x)
+    check_output_stride(self.output_stride)
     x = nn.relu(instance_norm("stem_norm", self.dtype)(x))  # [N, H/2, W/2, stem]
+    stem = x
 
     skips = []
     for layer, (width, count) in enumerate(zip(self.widths, self.blocks)):
@@ -183,4 +203,7 @@ class ResUNet(nn.Module):
     x = unit(self.widths[1], "iconv3")(jnp.concatenate([x, x2], axis=-1))
     x = unit(self.widths[0], "upconv2")(up(x, x1))
     x = unit(self.out_dim, "iconv2")(jnp.concatenate([x, x1], axis=-1))
+    if self.output_stride == 2:
+      x = unit(self.out_dim, "upconv1")(up(x, stem))
+      x = unit(self.out_dim, "iconv1")(jnp.concatenate([x, stem], axis=-1))
     return ReflectConv(self.out_dim, 1, dtype=self.dtype, name="out_conv")(x)  # [N, h, w, D]

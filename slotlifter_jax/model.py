@@ -5,7 +5,7 @@ pass), K slots (K+1 with the empty slot), D feature width, Ds slot width, C poin
 H×W source-image size, h×w feature-map size.
 
   encode:       source views → features [B, V, h, w, D] → slots [B, K, Ds]      (once per scene)
-                (h×w = ceil(H/4)×ceil(W/4), see encoder.py)
+                (h×w = ceil(H/s)×ceil(W/s), s = model.encoder_output_stride, see encoder.py)
   render_rays:  rays → samples → lifted features F_lift + positional embedding E_p = F_p
                 → allocation transformer + mapping (point-slot weights W, density σ)
                 → colour MLP(F_s + E_p) → volume rendering; optionally a fine pass.
@@ -152,6 +152,7 @@ class SlotLifter(nn.Module):
   # Encoder (§1.1).
   feature_dim: int = 64
   encoder_stem_width: int = 64
+  encoder_output_stride: int = 4  # 4: the paper's quarter-size feature map; 2: encoder.py
   encoder_widths: Sequence[int] = (64, 128, 256)
   encoder_blocks: Sequence[int] = (3, 4, 6)
   # Slot attention (§1.2).
@@ -205,7 +206,7 @@ class SlotLifter(nn.Module):
   def setup(self):
     self.encoder = ResUNet(out_dim=self.feature_dim, stem_width=self.encoder_stem_width,
                            widths=tuple(self.encoder_widths), blocks=tuple(self.encoder_blocks),
-                           dtype=self.dtype)
+                           output_stride=self.encoder_output_stride, dtype=self.dtype)
     self.slot_attention = SlotAttention(
         num_slots=self.num_slots, slot_dim=self.slot_dim, num_iters=self.slot_iters,
         mlp_dim=self.slot_mlp_dim, eps=self.slot_eps, drop_path_rate=self.slot_drop_path,
@@ -421,6 +422,7 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       encoder_stem_width=int(m.encoder_stem_width),
       encoder_widths=tuple(int(x) for x in m.encoder_widths),
       encoder_blocks=tuple(int(x) for x in m.encoder_blocks),
+      encoder_output_stride=int(m.get("encoder_output_stride", 4)),
       num_slots=int(m.num_slots),
       slot_dim=int(m.slot_dim),
       slot_iters=int(m.slot_iters),

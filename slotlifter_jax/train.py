@@ -17,7 +17,6 @@ import signal
 import time
 
 import jax
-import jax.numpy as jnp
 import ml_collections
 import numpy as np
 from absl import logging
@@ -25,6 +24,7 @@ from tqdm import tqdm
 
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import collapse
+from slotlifter_jax import encoder as encoder_lib
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import multihost
 from slotlifter_jax import restarts
@@ -254,6 +254,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   _check_restarts(config.train)
   try:
     views_lib.check_supersample(config.render)  # validation renders with it
+    encoder_lib.check_output_stride(config.model.get("encoder_output_stride", 4))
   except ValueError as e:
     raise ConfigError(str(e)) from e
   saved = ckpt_lib.load_saved_config(workdir)

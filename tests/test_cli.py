@@ -150,6 +150,8 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
      "train.restart_check_step=4 must be 0 (no check) or a multiple of train.eval_every=3"),
     (["--config=configs/clevr.py:smoke", "--config.render.supersample=0"],
      "render.supersample is 0; it must be an integer ≥ 1"),
+    (["--config=configs/clevr.py:smoke", "--config.model.encoder_output_stride=3"],
+     "model.encoder_output_stride is 3; it must be one of (4, 2)"),
 ])
 def test_a_bad_command_line_gets_one_line_and_creates_nothing(tmp_path, args, message):
   shutil.copytree(os.path.join(REPO, "configs"), tmp_path / "configs")

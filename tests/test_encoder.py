@@ -105,6 +105,32 @@ def test_resunet_shapes_and_jit():
   np.testing.assert_allclose(net.apply(params, x[1:]), out[1:], atol=1e-5)
 
 
+def test_output_stride_2_joins_the_stem_at_half_resolution():
+  """The option: a ceil(H/2)×ceil(W/2) map from two more 3×3 stages (D → D on the upsampled map,
+  then D + stem → D on it and the stem's output); the stride-4 layers keep their shapes."""
+  x = jax.ShapeDtypeStruct((1, 20, 27, 9), jnp.float32)
+  two = encoder.ResUNet(out_dim=13, stem_width=8, widths=(8, 12, 16), blocks=(1, 2, 1),
+                        output_stride=2)
+  p4 = jax.eval_shape(_tiny_unet().init, jax.random.key(0), x)["params"]
+  p2 = jax.eval_shape(two.init, jax.random.key(0), x)["params"]
+  assert jax.eval_shape(two.apply, {"params": p2}, x).shape == (1, 10, 14, 13)
+  assert set(p2) - set(p4) == {"upconv1", "iconv1"} and not set(p4) - set(p2)
+  shapes = lambda tree: jax.tree.map(lambda a: a.shape, tree)
+  assert shapes({k: p2[k] for k in p4}) == shapes(p4)
+  assert p2["upconv1"]["conv"]["conv"]["kernel"].shape == (3, 3, 13, 13)
+  assert p2["iconv1"]["conv"]["conv"]["kernel"].shape == (3, 3, 13 + 8, 13)
+  # The stem's output reaches the map: change the top-left 2×2 input pixels (one stem cell's
+  # receptive field centre) and the map changes most near that corner.
+  xs = np.random.default_rng(0).normal(size=(1, 32, 32, 9)).astype(np.float32)
+  params = jax.jit(two.init)(jax.random.key(1, impl="rbg"), jnp.asarray(xs))
+  bumped = xs.copy()
+  bumped[0, :2, :2] += 3.0
+  delta = np.abs(np.asarray(two.apply(params, bumped) - two.apply(params, xs))).sum(-1)[0]
+  assert delta.shape == (16, 16) and delta[:2, :2].mean() > 2 * delta[8:, 8:].mean()
+  with pytest.raises(ValueError, match=r"model.encoder_output_stride is 8; it must be one of"):
+    jax.eval_shape(encoder.ResUNet(out_dim=4, output_stride=8).init, jax.random.key(0), x)
+
+
 def test_resunet_default_layout():
   net = encoder.ResUNet(out_dim=64)
   x = jax.ShapeDtypeStruct((1, 128, 128, 9), jnp.float32)

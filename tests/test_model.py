@@ -338,7 +338,8 @@ def test_ablation_defaults_leave_the_model_unchanged():
   signature = _tree_signature(params)
   assert len(signature) == 152 and sum(x.size for x in jax.tree.leaves(params)) == 48_020
   assert not any({"density_hidden", "density_out"} & set(path) for path, _ in signature)
-  for name, value in (("feature_lifting", False), ("density_mode", "mlp")):
+  for name, value in (("feature_lifting", False), ("density_mode", "mlp"),
+                      ("encoder_output_stride", 2)):
     other = config.copy_and_resolve_references()
     other.model[name] = value
     model = model_lib.build_model(other)
@@ -347,6 +348,9 @@ def test_ablation_defaults_leave_the_model_unchanged():
     extra, missing = set(changed) - set(signature), set(signature) - set(changed)
     if name == "feature_lifting":  # only the lifting Linear goes
       assert not extra and {p[0] for p, _ in missing} == {"lift_proj"}
+    elif name == "encoder_output_stride":  # only the encoder's last two stages come
+      assert not missing and {p[:2] for p, _ in extra} == {("encoder", "upconv1"),
+                                                             ("encoder", "iconv1")}
     else:  # only the density head comes
       assert not missing and {p[:2] for p, _ in extra} == {
           ("allocation", "density_hidden"), ("allocation", "density_out")}
@@ -512,3 +516,31 @@ def test_slot_position_embedding_adds_a_linear_map_of_the_cell_grid_to_the_slot_
   assert float(jnp.max(jnp.abs(moved.slots - ref.slots))) > 1e-3
   # The lifted features are the encoder's, untouched by the embedding.
   chex.assert_trees_all_close(moved.features, ref.features, atol=0)
+
+
+def test_encoder_output_stride_2_gives_slot_attention_and_the_locality_box_the_finer_grid():
+  """model.encoder_output_stride = 2: features on ceil(H/2)×ceil(W/2) cells, slot attention over
+  all of them, the background cells of the locality box on the same grid (their centres as in
+  `background_cells`), and source-pixel labels at full size."""
+  from slotlifter_jax.rendering import views
+  model = _tiny(encoder_output_stride=2, locality_attention=True)
+  inputs = _inputs(1)
+  sources = _sources(inputs)
+  variables = _init(model, inputs)
+  encoded = jit(lambda: model.apply(variables, **sources, locality=True, train=False,
+                                    method=model.encode))()
+  h, w = -(-H // 2), -(-W // 2)
+  chex.assert_shape(encoded.features, (B, 1, h, w, D))
+  chex.assert_shape(encoded.slot_attn, (B, K, h * w))
+  np.testing.assert_allclose(encoded.slot_attn.sum(axis=1), 1.0, atol=1e-5)
+  cells = model.apply(variables, source_cam_to_world=sources["source_cam_to_world"],
+                      source_intrinsics=sources["source_intrinsics"], image_size=(H, W),
+                      feature_size=(h, w), method=model.background_cells)
+  chex.assert_shape(cells, (B, 1, h, w))
+  # While locality holds, a background-only cell's attention goes to the first slot alone.
+  background = np.asarray(cells).reshape(B, -1)
+  attn = np.asarray(encoded.slot_attn)
+  assert background.any()
+  np.testing.assert_allclose(attn[:, 0][background], 1.0, atol=1e-5)
+  labels = views.source_attention_labels(encoded, (H, W))
+  assert labels.shape == (1, H, W)
