@@ -39,6 +39,7 @@ Configurations (issue #7; every other setting is the paper's, configs/clevr.py):
   fast_device fast with its batches drawn inside the jitted step (data.sampler=device)
   fast_scan10 fast_device with 10 steps per dispatch (lax.scan over steps; a call is a block,
               s/step = block time / 10)
+  fast_stride2 fast with the encoder's half-size feature map (model.encoder_output_stride = 2)
 The batches come from scenes of the embedded generator (two per batch, made in memory), so rays
 and source views look like training data; speed does not depend on the pixel values.
 """

@@ -32,6 +32,8 @@ CONFIGS = {
     # fast_device with 10 steps per dispatch under lax.scan, timed per step (XLA:CPU compiles a
     # loop body's conv gradients poorly: slower, not faster).
     "fast_scan10": dict(variant="fast", overrides={**_FAST_DEVICE, "train.steps_per_dispatch": 10}),
+    # fast with a half-size feature map (model.encoder_output_stride = 2; slotlifter_jax/encoder.py).
+    "fast_stride2": dict(variant="fast", overrides={"model.encoder_output_stride": 2}),
 }
 
 
