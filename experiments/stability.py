@@ -72,8 +72,8 @@ def table(rows: list[dict], *, config: str = ablations.BASE) -> str:
   out.append("|" + "---|" * len(head))
   for r in sorted(rows, key=_command_seed):
     # A run that restarted (--workdirs) shows the command's seed and the one it ended with.
-    seed = int(r["seed"])
-    cells = [str(seed) if _command_seed(r) == seed else f"{_command_seed(r)} → {seed}"]
+    seed, first = int(r["seed"]), _command_seed(r)
+    cells = [str(seed) if first == seed else f"{first} → {seed}"]
     cells += [st.format_value(r.get(m, math.nan), digits=digits, scale=scale)
               for m, _, scale, digits in COLUMNS]
     flag = r.get("collapsed", math.nan)

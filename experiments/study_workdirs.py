@@ -57,7 +57,6 @@ def check_workdir(run_dir: str, config_spec: str):
   """The run's config (the named one with its seed and resolved data), after the checks of the
   module docstring that need no evaluation; raises StudyError naming the problem."""
   from slotlifter_jax import checkpoints
-  from slotlifter_jax import restarts
   from slotlifter_jax.data import embedded
   if not os.path.isdir(run_dir):
     raise sc.StudyError(f"--workdirs: {run_dir} is not a directory")
@@ -66,7 +65,8 @@ def check_workdir(run_dir: str, config_spec: str):
     raise sc.StudyError(f"{run_dir}: no config.json; not a training run directory")
   config = sc.load_config(config_spec)
   config.seed = int(saved.get("seed", 0))
-  config.train.restarts = int(config.train.restarts) - len(restarts.archived_attempts(run_dir))
+  attempts, _ = attempts_and_command_seed(run_dir, config.seed)
+  config.train.restarts = int(config.train.restarts) - (attempts - 1)  # one spent per restart
   config = embedded.resolve_data(config)  # the embedded set's path, as the run saved it
   diffs = training_differences(saved, config)
   if diffs:

@@ -181,9 +181,9 @@ class ResUNet(nn.Module):
     if len(self.widths) != 3 or len(self.blocks) != 3:
       raise ValueError(f"ResUNet needs three layers, got widths={self.widths} "
                        f"blocks={self.blocks}")
+    check_output_stride(self.output_stride)
     x = ReflectConv(self.stem_width, 7, 2, use_bias=False, dtype=self.dtype,
                     name="stem_conv")(x)
-    check_output_stride(self.output_stride)
     x = nn.relu(instance_norm("stem_norm", self.dtype)(x))  # [N, H/2, W/2, stem]
     stem = x
 
