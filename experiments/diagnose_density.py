@@ -10,14 +10,12 @@ and the render weights along three rays.
 import importlib.util
 import sys
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import geometry
 from slotlifter_jax import model as model_lib
-from slotlifter_jax import train_step as step_lib
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import registry
 from slotlifter_jax.rendering import views as views_lib
@@ -35,8 +33,7 @@ def main(config_arg: str, run_dir: str, scene_index: int = 0, split: str = "val"
   config = embedded.resolve_data(load_config(config_arg))
   scene = registry.load_split(config.data, split, max_scenes=scene_index + 1)[scene_index]
   model = model_lib.build_model(config)
-  key = jax.random.key(0, impl=config.train.prng_impl)
-  abstract = step_lib.init_state(model, config, step_lib.init_batch(scene), key)
+  abstract = ckpt_lib.abstract_state(model, config, scene)  # shapes only: nothing is initialised
   manager = ckpt_lib.Checkpoints(run_dir)
   state = manager.restore(abstract)
   manager.close()

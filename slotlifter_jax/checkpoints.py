@@ -228,8 +228,7 @@ def _normalise(v: Any):
 
 def abstract_state(model, config, scene: Scene) -> step_lib.TrainState:
   """The train state's shapes and dtypes (nothing computed), placed on the first device."""
-  shapes = jax.eval_shape(
-      lambda: step_lib.init_state(model, config, step_lib.init_batch(scene), jax.random.key(0)))
+  shapes = step_lib.state_shapes(model, config, step_lib.init_batch(scene))
   device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
   return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), shapes)
 

@@ -296,17 +296,22 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     ckpt_lib.save_config(config, workdir, step=ckpt_lib.latest_step_on_disk(workdir))
   model = model_lib.build_model(config)
   key = jax.random.key(config.seed, impl=config.train.prng_impl)
-  state = step_lib.init_state(model, config, sampler.batch(0), jax.random.fold_in(key, 0))
-  num_params = sum(x.size for x in jax.tree.leaves(state.params))
+  first_batch = sampler.batch(0)
+  shapes = step_lib.state_shapes(model, config, first_batch)
+  num_params = sum(x.size for x in jax.tree.leaves(shapes.params))
   logging.info("model: %s parameters", f"{num_params:,}")
 
   # Every process opens the managers (orbax creates the folders on process 0 and waits for it).
   checkpoints = ckpt_lib.Checkpoints(workdir, keep=config.train.keep_checkpoints)
   replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-  state = jax.device_put(state, replicated)
   if checkpoints.latest_step() is not None:  # restored straight into the replicated layout
-    state = checkpoints.restore(state)
+    # Into shapes, not into initialised weights: a resume compiles and runs no init.
+    state = checkpoints.restore(jax.tree.map(
+        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated), shapes))
     logging.info("resumed from step %d", int(state.step))
+  else:
+    state = jax.device_put(
+        step_lib.init_state(model, config, first_batch, jax.random.fold_in(key, 0)), replicated)
   block = int(config.train.get("steps_per_dispatch", 1))
   if on_device:
     device_scenes = jax.device_put(

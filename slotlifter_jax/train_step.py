@@ -117,13 +117,34 @@ def init_batch(scene: Scene) -> dict[str, np.ndarray]:
 
 
 def init_state(model, config, batch: dict, key: jax.Array) -> TrainState:
+  """The train state at step 0: initialised weights and the optimiser's state."""
+  # The program is almost all inlined threefry draws, one per weight (the forward is dead code);
+  # on a CPU, LLVM at -O1 compiles it in half the time of the default level, to the same bits
+  # (checked for the smoke, fast, quick and paper clevr models and room_chair: experiments/README.md,
+  # "Test suite").
+  cpu = jax.default_backend() == "cpu"
+  return _state(model, config, batch, key,
+                compiler_options={"xla_backend_optimization_level": 1} if cpu else None)
+
+
+def state_shapes(model, config, batch: dict) -> TrainState:
+  """init_state's shapes and dtypes; nothing is compiled or computed (a restore's target)."""
+  return jax.eval_shape(lambda: _state(model, config, batch, jax.random.key(0),
+                                       compiler_options=None))
+
+
+def _state(model, config, batch, key, *, compiler_options) -> TrainState:
   signed = config.model.colour_range == "signed"
   rngs = {"params": key, **{s: jax.random.fold_in(key, i + 1) for i, s in enumerate(RNG_STREAMS)}}
-  # Keys and batch are arguments, not constants baked into the program, so every init of the same
-  # model and shapes is one compilation (and one persistent-cache entry).
-  variables = jax.jit(lambda rngs, inputs: model.init(
-      rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True, train=False))(
-          rngs, model_inputs(batch, signed_colour=signed))
+  # The weights do not depend on the batch, so one scene and one ray stand for it: every init of
+  # a model is then the same program, whatever the batch and ray counts. Keys and batch are
+  # arguments, not constants baked into the program, so that program is one compilation (and one
+  # persistent-cache entry).
+  first = {k: v[:1, :1] if k in RAY_KEYS else v[:1] for k, v in batch.items()}
+  variables = jax.jit(
+      lambda rngs, inputs: model.init(
+          rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True, train=False),
+      compiler_options=compiler_options)(rngs, model_inputs(first, signed_colour=signed))
   params = variables["params"]
   tx = make_optimizer(config.train)
   zero = lambda: jnp.zeros((), jnp.int32)  # distinct buffers: the step donates every leaf

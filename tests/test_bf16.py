@@ -324,8 +324,7 @@ def test_bf16_traces_with_every_model_switch():
   config.data.num_source_views = 2
   model = model_lib.build_model(config)
   batch = fake_batch(config)
-  params = jax.eval_shape(lambda: step_lib.init_state(
-      model, config, batch, jax.random.key(0, impl="rbg")).params)
+  params = step_lib.state_shapes(model, config, batch).params
   grad_fn = step_lib.make_grad_fn(model, config)
   (loss, _), grads = jax.eval_shape(lambda p: grad_fn(
       p, batch, jax.random.key(1), schedules.all_schedules(0, config.train)), params)

@@ -94,8 +94,7 @@ def _state(workdir, step):
   from slotlifter_jax import model as model_lib
   from slotlifter_jax import train_step as step_lib
   config = load_config()
-  shapes = jax.eval_shape(lambda: step_lib.init_state(  # shapes only: nothing is compiled
-      model_lib.build_model(config), config, fake_batch(config), jax.random.key(0)))
+  shapes = step_lib.state_shapes(model_lib.build_model(config), config, fake_batch(config))
   device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
   abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
                           shapes)

@@ -17,10 +17,27 @@ from slotlifter_jax import train_step as step_lib
 from train_helpers import fake_batch, load_config
 
 
+def test_init_weights_are_flax_init_on_the_whole_batch_at_the_default_compile_level():
+  """init_state inits on one scene and one ray, compiled at LLVM -O1 on a CPU: its weights are,
+  bit for bit, flax's init of the whole batch compiled at XLA's default level, whatever keys the
+  other random streams get."""
+  config = load_config()
+  model = model_lib.build_model(config)
+  batch = fake_batch(config)
+  key = jax.random.key(3)
+  state = step_lib.init_state(model, config, batch, key)
+  rngs = {"params": key, **{s: jax.random.key(100 + i) for i, s in enumerate(step_lib.RNG_STREAMS)}}
+  reference = jax.jit(lambda rngs, inputs: model.init(
+      rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True, train=False))(
+          rngs, step_lib.model_inputs(batch, signed_colour=False))["params"]
+  assert batch["ray_directions"].shape[:2] == (2, 32)  # the reference saw the whole batch
+  jax.tree.map(np.testing.assert_array_equal, state.params, reference)
+
+
 def test_param_groups_split_head_from_backbone():
   config = load_config()
   model = model_lib.build_model(config)
-  state = step_lib.init_state(model, config, fake_batch(config), jax.random.key(0))
+  state = step_lib.state_shapes(model, config, fake_batch(config))  # the groups need no weights
   groups = jax.tree.leaves(step_lib.param_groups(state.params))
   assert "head" in groups and "backbone" in groups
   # The head (colour MLP, lifting and positional Linear) is a small fraction of the model.

@@ -43,7 +43,9 @@ def fake_batch(config, *, seed=0, num_scenes=None):
 
 def final_params(workdir, config):
   model = model_lib.build_model(config)
-  abstract = step_lib.init_state(model, config, fake_batch(config), jax.random.key(0))
+  shapes = step_lib.state_shapes(model, config, fake_batch(config))
+  device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), shapes)
   manager = ckpt_lib.Checkpoints(workdir)
   state = manager.restore(abstract)
   manager.close()
