@@ -119,9 +119,8 @@ def init_batch(scene: Scene) -> dict[str, np.ndarray]:
 def init_state(model, config, batch: dict, key: jax.Array) -> TrainState:
   """The train state at step 0: initialised weights and the optimiser's state."""
   # The program is almost all inlined threefry draws, one per weight (the forward is dead code);
-  # on a CPU, LLVM at -O1 compiles it in half the time of the default level, to the same bits
-  # (checked for the smoke, fast, quick and paper clevr models and room_chair: experiments/README.md,
-  # "Test suite").
+  # on a CPU, LLVM at -O1 compiles it in about half the time of the default level, to the same
+  # bits (experiments/compile_levels.py; experiments/README.md, "Compile time").
   cpu = jax.default_backend() == "cpu"
   return _state(model, config, batch, key,
                 compiler_options={"xla_backend_optimization_level": 1} if cpu else None)
@@ -258,8 +257,8 @@ class _WithKeys:
   def lower(self, state, data):
     return _WithKeys(self._fn.lower(state, data, *self._keys), self._keys)
 
-  def compile(self):
-    return _WithKeys(self._fn.compile(), self._keys)
+  def compile(self, **kwargs):  # compiler_options=…
+    return _WithKeys(self._fn.compile(**kwargs), self._keys)
 
   def __getattr__(self, name):  # memory_analysis, cost_analysis, as_text, …
     return getattr(self._fn, name)

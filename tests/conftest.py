@@ -4,6 +4,7 @@
 - One persistent XLA compilation cache for the whole session (this process and the subprocesses
   the tests start): the smoke model is compiled by many tests with the same shapes, and on a 2-core
   CPU compilation, not execution, is what most of these tests spend their time on.
+- XLA's CPU backend compiles at -O0 for the whole session, subprocesses included.
 - The heaviest files are collected first (HEAVIEST_FIRST).
 """
 
@@ -14,6 +15,16 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:  # set before any test module 
   os.environ["JAX_COMPILATION_CACHE_DIR"] = tempfile.mkdtemp(prefix="slotlifter_xla_cache_")
   os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"] = "0"
   os.environ["JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES"] = "0"
+
+# The suite compiles far more than it computes (smoke models, a few steps each), and LLVM's passes
+# are most of a compilation: at -O0 the smoke train step compiles in ~60 % of the default time and
+# still runs in milliseconds. The code is IEEE arithmetic either way (XLA's CPU backend has no
+# fast-math), but the last bits can differ from -O3 (fused multiply-adds), so no test compares
+# against numbers saved from a run; resume and multi-device tests compare runs of this same setting.
+# Subprocesses inherit it through the environment.
+_LEVEL = "--xla_backend_optimization_level"
+if _LEVEL not in os.environ.get("XLA_FLAGS", ""):
+  os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_LEVEL}=0".strip()
 
 import pytest  # noqa: E402
 

@@ -15,7 +15,8 @@ from train_helpers import REPO
 def test_four_devices_match_one_device():
   script = textwrap.dedent(f"""
     import os, sys
-    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    flags = os.environ.get("XLA_FLAGS", "")  # the suite's compile level (tests/conftest.py)
+    os.environ["XLA_FLAGS"] = flags + " --xla_force_host_platform_device_count=4"
     sys.path.insert(0, {os.path.join(REPO, "tests")!r})
     import jax, numpy as np
     from train_helpers import load_config, fake_batch

@@ -43,7 +43,8 @@ def _launch(workdir, extra, *, processes: int, logs: str) -> list[tuple[subproce
   """Starts `processes` processes of one run (2: distributed, one device each; 1: two devices)."""
   port = _free_port()
   env = dict(os.environ, JAX_PLATFORMS="cpu",
-             XLA_FLAGS=f"--xla_force_host_platform_device_count={1 if processes > 1 else 2}")
+             XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} "
+                       f"--xla_force_host_platform_device_count={1 if processes > 1 else 2}")
   started = []
   for i in range(processes):
     args = [sys.executable, "-m", "slotlifter_jax.main", f"--config={SMOKE}",
