@@ -119,8 +119,8 @@ def init_batch(scene: Scene) -> dict[str, np.ndarray]:
 def init_state(model, config, batch: dict, key: jax.Array) -> TrainState:
   """The train state at step 0: initialised weights and the optimiser's state."""
   # The program is almost all inlined threefry draws, one per weight (the forward is dead code);
-  # on a CPU, LLVM at -O1 compiles it in about half the time of the default level, to the same
-  # bits (experiments/compile_levels.py; experiments/README.md, "Compile time").
+  # on a CPU, LLVM at -O1 compiles it in 45–75 % of the default level's time, to the same bits
+  # (experiments/compile_levels.py; experiments/README.md, "Compile time").
   cpu = jax.default_backend() == "cpu"
   return _state(model, config, batch, key,
                 compiler_options={"xla_backend_optimization_level": 1} if cpu else None)
