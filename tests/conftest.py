@@ -18,9 +18,10 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:  # set before any test module 
 
 # The suite compiles far more than it computes (smoke models, a few steps each), and LLVM's passes
 # are most of a compilation: at -O0 the smoke train step compiles in 60 % of the default time and
-# still runs in milliseconds (experiments/compile_levels.py). The code is IEEE arithmetic either way (XLA's CPU backend has no
-# fast-math), but the last bits can differ from -O3 (fused multiply-adds), so no test compares
-# against numbers saved from a run; resume and multi-device tests compare runs of this same setting.
+# still runs in milliseconds (experiments/compile_levels.py). The code is IEEE arithmetic either
+# way (XLA's CPU backend has no fast-math), but the last bits can differ from the default level's,
+# so no test compares against numbers saved from a run; resume and multi-device tests compare runs
+# of this same setting.
 # Subprocesses inherit it through the environment.
 _LEVEL = "--xla_backend_optimization_level"
 if _LEVEL not in os.environ.get("XLA_FLAGS", ""):
