@@ -11,7 +11,7 @@ with the persistent compilation cache off. It prints and records the compile tim
 weights and the parameters after --steps steps are bit-identical to those of level 3, and the
 step's run time. Writes experiments/results/compile_levels_<platform>.json.
 
-Why: `init_state` compiles its program at level 1 (same weights, half the time), and the test
+Why: `init_state` compiles its program at level 1 (same weights, 0.47–0.73× the time), and the test
 suite compiles everything at level 0 (tests/conftest.py).
 """
 
@@ -57,13 +57,8 @@ def measure(spec: str, levels: list[int], steps: int, with_step: bool) -> dict:
   model = model_lib.build_model(config)
   batch = fake_batch(config)
   key = jax.random.key(0)
-  rngs = {"params": key, **{s: jax.random.fold_in(key, i + 1)
-                            for i, s in enumerate(step_lib.RNG_STREAMS)}}
-  first = {k: v[:1, :1] if k in step_lib.RAY_KEYS else v[:1] for k, v in batch.items()}
-  inputs = step_lib.model_inputs(first, signed_colour=config.model.colour_range == "signed")
-  init = jax.jit(lambda rngs, inputs: model.init(
-      rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True, train=False))
-  init_lowered = init.lower(rngs, inputs)
+  init, init_args = step_lib.init_program(model, config, batch, key)
+  init_lowered = init.lower(*init_args)
   if with_step:
     step = step_lib.make_train_step(model, config, key=jax.random.key(1))
     state0 = step_lib.init_state(model, config, batch, key)
@@ -74,7 +69,7 @@ def measure(spec: str, levels: list[int], steps: int, with_step: bool) -> dict:
   rows, reference = [], {}
   for level in levels:
     compiled_init, init_s = _timed_compile(init_lowered, level)
-    weights = [np.asarray(x) for x in jax.tree.leaves(compiled_init(rngs, inputs))]
+    weights = [np.asarray(x) for x in jax.tree.leaves(compiled_init(*init_args))]
     reference.setdefault("weights", weights)
     row = dict(level=level, init_compile_s=round(init_s, 2),
                init_bit_identical_to_level_3=same(weights, reference["weights"]))

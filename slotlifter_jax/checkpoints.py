@@ -228,9 +228,8 @@ def _normalise(v: Any):
 
 def abstract_state(model, config, scene: Scene) -> step_lib.TrainState:
   """The train state's shapes and dtypes (nothing computed), placed on the first device."""
-  shapes = step_lib.state_shapes(model, config, step_lib.init_batch(scene))
   device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), shapes)
+  return step_lib.state_shapes(model, config, step_lib.init_batch(scene), sharding=device)
 
 
 def _choose_checkpoint(manager: Checkpoints, checkpoint: str) -> tuple[str, int]:

@@ -297,17 +297,16 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   model = model_lib.build_model(config)
   key = jax.random.key(config.seed, impl=config.train.prng_impl)
   first_batch = sampler.batch(0)
-  shapes = step_lib.state_shapes(model, config, first_batch)
+  replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+  shapes = step_lib.state_shapes(model, config, first_batch, sharding=replicated)
   num_params = sum(x.size for x in jax.tree.leaves(shapes.params))
   logging.info("model: %s parameters", f"{num_params:,}")
 
   # Every process opens the managers (orbax creates the folders on process 0 and waits for it).
   checkpoints = ckpt_lib.Checkpoints(workdir, keep=config.train.keep_checkpoints)
-  replicated = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
   if checkpoints.latest_step() is not None:  # restored straight into the replicated layout
     # Into shapes, not into initialised weights: a resume compiles and runs no init.
-    state = checkpoints.restore(jax.tree.map(
-        lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=replicated), shapes))
+    state = checkpoints.restore(shapes)
     logging.info("resumed from step %d", int(state.step))
   else:
     state = jax.device_put(

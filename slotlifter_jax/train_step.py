@@ -126,24 +126,36 @@ def init_state(model, config, batch: dict, key: jax.Array) -> TrainState:
                 compiler_options={"xla_backend_optimization_level": 1} if cpu else None)
 
 
-def state_shapes(model, config, batch: dict) -> TrainState:
-  """init_state's shapes and dtypes; nothing is compiled or computed (a restore's target)."""
-  return jax.eval_shape(lambda: _state(model, config, batch, jax.random.key(0),
-                                       compiler_options=None))
+def state_shapes(model, config, batch: dict, sharding=None) -> TrainState:
+  """init_state's shapes and dtypes, placed with `sharding` if given; nothing is compiled or
+  computed (a restore's target)."""
+  shapes = jax.eval_shape(lambda: _state(model, config, batch, jax.random.key(0),
+                                         compiler_options=None))
+  if sharding is None:
+    return shapes
+  return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), shapes)
+
+
+def init_program(model, config, batch: dict, key: jax.Array, *, compiler_options=None):
+  """(jitted init of the model's variables, its arguments): what init_state compiles and runs.
+
+  The weights do not depend on the batch, so one scene and one ray stand for it: every init of a
+  model is then the same program, whatever the batch and ray counts. Keys and batch are
+  arguments, not constants baked into the program, so that program is one compilation (and one
+  persistent-cache entry)."""
+  rngs = {"params": key, **{s: jax.random.fold_in(key, i + 1) for i, s in enumerate(RNG_STREAMS)}}
+  first = {k: v[:1, :1] if k in RAY_KEYS else v[:1] for k, v in batch.items()}
+  inputs = model_inputs(first, signed_colour=config.model.colour_range == "signed")
+  init = jax.jit(
+      lambda rngs, inputs: model.init(
+          rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True, train=False),
+      compiler_options=compiler_options)
+  return init, (rngs, inputs)
 
 
 def _state(model, config, batch, key, *, compiler_options) -> TrainState:
-  signed = config.model.colour_range == "signed"
-  rngs = {"params": key, **{s: jax.random.fold_in(key, i + 1) for i, s in enumerate(RNG_STREAMS)}}
-  # The weights do not depend on the batch, so one scene and one ray stand for it: every init of
-  # a model is then the same program, whatever the batch and ray counts. Keys and batch are
-  # arguments, not constants baked into the program, so that program is one compilation (and one
-  # persistent-cache entry).
-  first = {k: v[:1, :1] if k in RAY_KEYS else v[:1] for k, v in batch.items()}
-  variables = jax.jit(
-      lambda rngs, inputs: model.init(
-          rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True, train=False),
-      compiler_options=compiler_options)(rngs, model_inputs(first, signed_colour=signed))
+  init, args = init_program(model, config, batch, key, compiler_options=compiler_options)
+  variables = init(*args)
   params = variables["params"]
   tx = make_optimizer(config.train)
   zero = lambda: jnp.zeros((), jnp.int32)  # distinct buffers: the step donates every leaf

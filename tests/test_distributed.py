@@ -95,10 +95,9 @@ def _state(workdir, step):
   from slotlifter_jax import model as model_lib
   from slotlifter_jax import train_step as step_lib
   config = load_config()
-  shapes = step_lib.state_shapes(model_lib.build_model(config), config, fake_batch(config))
   device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device),
-                          shapes)
+  abstract = step_lib.state_shapes(model_lib.build_model(config), config, fake_batch(config),
+                                   sharding=device)
   manager = ckpt_lib.Checkpoints(workdir)
   try:
     return manager.restore(abstract, step=step)

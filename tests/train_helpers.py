@@ -43,9 +43,8 @@ def fake_batch(config, *, seed=0, num_scenes=None):
 
 def final_params(workdir, config):
   model = model_lib.build_model(config)
-  shapes = step_lib.state_shapes(model, config, fake_batch(config))
   device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
-  abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=device), shapes)
+  abstract = step_lib.state_shapes(model, config, fake_batch(config), sharding=device)
   manager = ckpt_lib.Checkpoints(workdir)
   state = manager.restore(abstract)
   manager.close()
