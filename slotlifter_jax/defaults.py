@@ -380,8 +380,8 @@ def fast(c):
   - `data.ray_sampling = "contrast"`: half the rays drawn towards pixels that stand out from the
     floor, 41 % of them on objects instead of 11 %;
   - masking and slot noise annealed over 20 000 steps, locality 20 000, and a masking floor:
-    half the rays stay masked until step 50 000 (`train.mask_min`, `train.mask_min_steps`),
-    then the floor is lowered to 0 along a cosine over the last 10 000 steps
+    half the rays stay masked until step 40 000 (`train.mask_min`, `train.mask_min_steps`),
+    then the floor is lowered to 0 along a cosine over the last 10 000 of 50 000 steps
     (`train.mask_min_release_steps`). Without the floor, slot attention's grouping of the source
     view peaked while masking lasted and faded once it ended (FG-ARI 0.37 at step 30 000 on 20
     validation scenes); with it the grouping kept rising (FG-ARI 0.82 at step 34 000). The
@@ -438,14 +438,14 @@ def fast(c):
   c.train.steps_per_dispatch = 1
   c.data.frame = "source_azimuth"
   c.data.ray_sampling = "contrast"
-  c.train.num_steps = 60_000
+  c.train.num_steps = 50_000
   c.train.warmup_steps = 500
   c.train.decay_steps = 200_000
   c.train.mask_anneal_steps = 20_000
   c.train.noise_anneal_steps = 20_000
   c.train.locality_steps = 20_000
   c.train.mask_min = 0.5
-  c.train.mask_min_steps = 50_000
+  c.train.mask_min_steps = 40_000
   c.train.mask_min_release_steps = 10_000
   c.train.select_by = "min_fg_nv"
   c.train.base_lr = 1e-4

@@ -506,12 +506,12 @@ def test_pareto_fast_grid_plans_one_axis_of_fast_at_its_own_budget(tmp_path, cap
   pareto.main(["--grid=fast", "--dry_run", f"--root={tmp_path}", "--points=base,samples8"])
   lines = capsys.readouterr().out.splitlines()
   assert len(lines) == 3 and lines[-1].startswith("2 runs;")
-  runs = pareto.plan(config="configs/clevr.py:fast", num_steps=60_000,
+  runs = pareto.plan(config="configs/clevr.py:fast", num_steps=50_000,
                      points={k: pareto.FAST_POINTS[k] for k in ("base", "samples8")})
   base, samples8 = (sc.run_config(r) for r in runs)
   # fast's own budget: nothing rescaled, and only the named axis moves.
   fast = sc.load_config("configs/clevr.py:fast")
-  assert base.train.mask_min_steps == fast.train.mask_min_steps == 50_000
+  assert base.train.mask_min_steps == fast.train.mask_min_steps == 40_000
   assert (base.render.num_samples, samples8.render.num_samples) == (16, 8)
   assert samples8.train.rays_per_scene == base.train.rays_per_scene == 128
   # fast restarts a failing seed; a study's run is one attempt (its two validations would not
@@ -521,7 +521,7 @@ def test_pareto_fast_grid_plans_one_axis_of_fast_at_its_own_budget(tmp_path, cap
   assert restarts.config_problem(base.train) is None
   # The grid's base is the fast ablation study's `full` run: one training serves both.
   assert sc.run_id(runs[0]) == sc.run_id(
-      ablations.plan(config="configs/clevr.py:fast", num_steps=60_000, seeds=range(1),
+      ablations.plan(config="configs/clevr.py:fast", num_steps=50_000, seeds=range(1),
                      variants={"full": ablations.VARIANTS["full"]})[0])
   with pytest.raises(SystemExit, match=r"unknown points \['rays512'\] for --grid=fast"):
     pareto.main(["--grid=fast", "--dry_run", "--points=rays512"])
