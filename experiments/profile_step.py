@@ -124,14 +124,14 @@ def main(argv):
   attributed = sum(by_scope.values())
   print(f"config {FLAGS.config}: {wall:.3f} s/step wall (profiled), {attributed:.3f} s/step in "
         f"attributed XLA instructions ({runtime.describe()})")
-  print(f"\n| phase | scope | s/step | share |\n|---|---|---|---|")
+  print("\n| phase | scope | s/step | share |\n|---|---|---|---|")
   for (phase, scope), s in by_scope.most_common(FLAGS.top):
     print(f"| {phase} | {scope} | {s:.3f} | {100 * s / attributed:.1f} % |")
   by_phase = collections.Counter()
   for (phase, _), s in by_scope.items():
     by_phase[phase] += s
   print("\nby phase: " + ", ".join(f"{p} {100 * s / attributed:.1f} %" for p, s in by_phase.most_common()))
-  print(f"\n| instruction | op_name (tail) | s/step |\n|---|---|---|")
+  print("\n| instruction | op_name (tail) | s/step |\n|---|---|---|")
   for (instr, op), s in by_instr.most_common(FLAGS.top):
     print(f"| {instr} | {op} | {s:.3f} |")
 

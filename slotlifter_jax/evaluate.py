@@ -34,7 +34,6 @@ import os
 import time
 from typing import Optional, Sequence
 
-import jax
 import ml_collections
 import numpy as np
 from absl import logging

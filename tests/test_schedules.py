@@ -87,7 +87,6 @@ def test_all_schedules_reports_every_value():
 def test_optimizer_matches_optax_with_each_group_schedule(name):
   """make_optimizer against optax's own Lion / AdamW run by hand on each parameter group with its
   own learning-rate schedule (head 1.0, backbone 0.02 at step 0, so a swapped group fails)."""
-  import jax
   import jax.numpy as jnp
   import optax
   from slotlifter_jax import train_step

@@ -25,7 +25,6 @@ from typing import Optional
 import flax
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from slotlifter_jax import geometry
 from slotlifter_jax.data.layout import BACKGROUND_LABEL
