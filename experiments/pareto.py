@@ -27,7 +27,7 @@ rather than noise (FAST_POINTS: samples per ray 8 / 32 against 16, rays per scen
 against 128, slot width 64, 4 allocation blocks, colour MLP width 64). Its files are
 pareto_fast.csv/.md/.png. Its `base` run is the same run directory as
 `ablations.py --config=configs/clevr.py:fast`'s `full` (study_common.run_id), so the two studies
-share it. About 50 min per point alone on this CPU.
+share it. About 80 min per point alone on the 2026-11-27 host (seed 3 of `fast`: 79.5 min).
 
 Time: 45 min measured on the 2-core CPU for the defaults (600 steps, 20 scenes; 19:17–20:11 on
 2026-11-22, experiments/README.md); --dry_run prints an estimate from the cost model in
