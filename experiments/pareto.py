@@ -77,9 +77,9 @@ FAST_POINTS = {
     # Colour per point, not the allocation to slots: PSNR that need not cost the split?
     "colour64": {"model.colour_hidden": 64},
 }
-# --grid: (base config, points, budget, file stem).
+# --grid: (base config, points, budget, file stem); budget None: the config's own train.num_steps.
 GRIDS = {"quick": (BASE, POINTS, NUM_STEPS, "pareto"),
-         "fast": ("configs/clevr.py:fast", FAST_POINTS, 50_000, "pareto_fast")}
+         "fast": ("configs/clevr.py:fast", FAST_POINTS, None, "pareto_fast")}
 # (CSV column, axis label) of the figure's rows and columns.
 METRICS = (("psnr_novel", "novel-view PSNR (dB)"), ("fg_ari", "FG-ARI"))
 COSTS = (("train_s", "training wall-clock (s)"), ("render_per_view_s", "render time per view (s)"))
@@ -190,6 +190,8 @@ def main(argv=None) -> None:
     raise SystemExit(f"--points: unknown points {unknown} for --grid={args.grid}; choose from "
                      f"{list(grid_points)}")
   points = {n: grid_points[n] for n in names}
+  if budget is None:
+    budget = int(sc.load_config(base).train.num_steps)
   runs = plan(config=base, num_steps=args.num_steps or budget, seed=args.seed, points=points)
   csv_path = os.path.join(args.results_dir, f"{stem}.csv")
   png_path = os.path.join(args.results_dir, f"{stem}.png")
