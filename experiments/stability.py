@@ -27,7 +27,9 @@ that were trained with `python -m slotlifter_jax.main --config=... --config.seed
 Each must match --config in every field that changes training and have trained its full budget;
 its evaluation is reused or written (experiments/study_workdirs.py says what is checked). A run
 that restarted (`train.restarts`) counts as the seed its command named; the per-seed table shows
-the seed it ended with and its number of attempts.
+the seed it ended with and its number of attempts. `--checkpoint=best` summarises instead the
+checkpoint that `python -m slotlifter_jax.main --mode=eval` evaluates by default (the best by
+validation; its rows go to the same CSV and its table to stability_best.md).
 """
 
 from __future__ import annotations
@@ -56,18 +58,21 @@ def plan(*, config: str = ablations.BASE, num_steps: int = ablations.NUM_STEPS,
           for seed in seeds]
 
 
-def table(rows: list[dict], *, config: str = ablations.BASE) -> str:
+def table(rows: list[dict], *, config: str = ablations.BASE, checkpoint: str = "latest") -> str:
   groups = st.aggregate(rows, metrics=[c[0] for c in COLUMNS])
   steps = sorted({int(r["num_steps"]) for r in rows})
   scenes = sorted({int(r["eval_scenes"]) for r in rows})
+  which = ("the best checkpoint by validation (checkpoint step per seed below)"
+           if checkpoint == "best" else "the last checkpoint")
   out = [f"# Seed stability ({config}, {'/'.join(map(str, steps))} steps, "
          f"{'/'.join(map(str, scenes))} test scenes per run)\n",
-         f"Mean ± sample std [min, max] over seeds; ARIs ×100; collapse = runs whose last "
-         f"validation flags collapse / runs. Written by experiments/stability.py on "
-         f"{time.strftime('%Y-%m-%d %H:%M')}.\n",
+         f"Each run evaluated at {which}. Mean ± sample std [min, max] over seeds; ARIs ×100; "
+         f"collapse = runs whose validation at that checkpoint flags collapse / runs. Written by "
+         f"experiments/stability.py on {time.strftime('%Y-%m-%d %H:%M')}.\n",
          st.markdown_table(groups, columns=COLUMNS, extremes=True), "",
          "Per seed:\n"]
-  head = ["seed"] + [h for _, h, _, _ in COLUMNS] + ["collapsed", "attempts", "train s", "run"]
+  head = (["seed"] + [h for _, h, _, _ in COLUMNS] +
+          ["collapsed", "attempts", "checkpoint step", "train s", "run"])
   out.append("| " + " | ".join(head) + " |")
   out.append("|" + "---|" * len(head))
   for r in sorted(rows, key=_command_seed):
@@ -81,7 +86,8 @@ def table(rows: list[dict], *, config: str = ablations.BASE) -> str:
                  ("yes" if float(flag) == 1.0 else "no"))
     attempts = r.get("attempts", "")
     cells.append("–" if attempts in ("", None) else str(int(float(attempts))))
-    cells += [f"{float(r['train_s']):.0f}", str(r["run_id"])]
+    cells += [str(int(float(r["checkpoint_step"]))), f"{float(r['train_s']):.0f}",
+              str(r["run_id"])]
     out.append("| " + " | ".join(cells) + " |")
   return "\n".join(out) + "\n"
 
@@ -105,7 +111,13 @@ def parse_args(argv=None):
   p.add_argument("--workdirs", default="",
                  help="comma-separated finished runs of --config trained with slotlifter_jax.main "
                       "(one per seed): summarise them instead of training --seeds runs")
-  return p.parse_args(argv)
+  p.add_argument("--checkpoint", default="latest", choices=("latest", "best"),
+                 help="with --workdirs: evaluate each run's last checkpoint, or its best by "
+                      "validation (what `slotlifter_jax.main --mode=eval` reports)")
+  args = p.parse_args(argv)
+  if args.checkpoint != "latest" and not args.workdirs:
+    p.error("--checkpoint=best needs --workdirs (the study runner evaluates last checkpoints)")
+  return args
 
 
 def main(argv=None) -> None:
@@ -130,7 +142,8 @@ def main_workdirs(args) -> None:
   """--workdirs: the same table for runs trained with the entry point."""
   dirs = [d for d in args.workdirs.split(",") if d]
   csv_path = os.path.join(args.results_dir, "stability.csv")
-  md_path = os.path.join(args.results_dir, "stability.md")
+  md_name = "stability.md" if args.checkpoint == "latest" else f"stability_{args.checkpoint}.md"
+  md_path = os.path.join(args.results_dir, md_name)
   try:
     if args.dry_run:
       for d in dirs:
@@ -141,15 +154,16 @@ def main_workdirs(args) -> None:
       print(f"{len(dirs)} finished runs; only their evaluations (if missing) would run")
       return
     if args.table_only:
-      ids = {sw.workdir_id(d) for d in dirs}
+      ids = {sw.workdir_id(d, args.checkpoint) for d in dirs}
       rows = [r for r in sc.read_csv(csv_path) if r.get("run_id") in ids]
     else:
       rows = sw.workdir_rows(dirs, config_spec=args.config, study="stability", name="full",
-                             eval_split=args.eval_split, eval_scenes=args.eval_scenes)
+                             eval_split=args.eval_split, eval_scenes=args.eval_scenes,
+                             checkpoint=args.checkpoint)
       sc.upsert_csv(csv_path, rows)
   except (sc.StudyError, FileNotFoundError) as e:
     raise SystemExit(f"[stability] {e}")
-  text = table(rows, config=args.config)
+  text = table(rows, config=args.config, checkpoint=args.checkpoint)
   st.write_text(md_path, text)
   print(text)
   print(f"[stability] wrote {csv_path} and {md_path}")

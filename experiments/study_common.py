@@ -258,9 +258,10 @@ def add_training_segment(run_dir: str, *, seconds: float, from_step: int, to_ste
   return timing
 
 
-def latest_step(run_dir: str) -> int:
-  """The last checkpointed step (orbax names step folders by number; 0 when none)."""
-  folder = os.path.join(run_dir, "checkpoints", "latest")
+def latest_step(run_dir: str, which: str = "latest") -> int:
+  """The step of DIR/checkpoints/<which> ("latest" or "best"), the newest when it keeps several
+  (orbax names step folders by number; 0 when none)."""
+  folder = os.path.join(run_dir, "checkpoints", which)
   steps = [int(n) for n in os.listdir(folder) if n.isdigit()] if os.path.isdir(folder) else []
   return max(steps, default=0)
 

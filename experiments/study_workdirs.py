@@ -15,9 +15,11 @@ with one line naming its directory and the problem:
     the command's seed (`command_seed`, the first attempt's), the seed whose parameters it
     evaluates (`seed`) and the number of attempts, so a restarted seed is counted once and seen;
   - its last checkpoint is the config's full budget (`train.num_steps`);
-  - its evaluation is of that checkpoint on the requested number of scenes: an existing
-    DIR/eval/<split>/metrics.json is reused when it is, refused (never overwritten) when it is
-    not, and written by `evaluate_split` when there is none.
+  - its evaluation is of the requested checkpoint (the last one, or with checkpoint="best" the
+    best by validation, which `python -m slotlifter_jax.main --mode=eval` evaluates by default)
+    on the requested number of scenes: an existing DIR/eval/<split>/metrics.json is reused when
+    it is, refused (never overwritten) when it is not, and written by `evaluate_split` when
+    there is none. Best and last rows of one run have distinct run ids (`workdir_id`).
 The row has the runner's columns (study_common.CSV_COLUMNS). `train_s` is the run's own clock
 (`wall_s` of its last log record: seconds of training summed over resumed invocations, with its
 validations); `train_segments` is unknown and left empty.
@@ -46,11 +48,13 @@ def training_differences(saved: dict, config) -> dict:
           if field not in NOT_TRAINING}
 
 
-def workdir_id(run_dir: str) -> str:
+def workdir_id(run_dir: str, checkpoint: str = "latest") -> str:
   """The row's key: the directory's name and a hash of its absolute path (two runs named
-  `seed0` in different folders stay two rows)."""
+  `seed0` in different folders stay two rows), marked when the row evaluates the best
+  checkpoint (so one CSV keeps a run's best and last rows)."""
   path = os.path.abspath(run_dir)
-  return f"{os.path.basename(path)}-{hashlib.sha1(path.encode()).hexdigest()[:6]}"
+  mark = "" if checkpoint == "latest" else f"-{checkpoint}"
+  return f"{os.path.basename(path)}-{hashlib.sha1(path.encode()).hexdigest()[:6]}{mark}"
 
 
 def check_workdir(run_dir: str, config_spec: str):
@@ -82,19 +86,24 @@ def check_workdir(run_dir: str, config_spec: str):
 
 
 def _evaluation(config, run_dir: str, *, split: str, eval_scenes: Optional[int],
-                progress: bool) -> dict:
+                progress: bool, checkpoint: str = "latest") -> dict:
   from slotlifter_jax import evaluate
   path = os.path.join(run_dir, "eval", split, "metrics.json")
-  step = sc.latest_step(run_dir)
+  # The best and the last checkpoint at one step hold one state (both managers save the step's
+  # train state), so the step alone tells which checkpoint an evaluation read.
+  step = sc.latest_step(run_dir, checkpoint)
+  if not step:
+    raise sc.StudyError(f"{run_dir}: no {checkpoint} checkpoint")
   if not os.path.exists(path):
-    evaluate.evaluate_split(config, run_dir, split=split, checkpoint="latest",
+    evaluate.evaluate_split(config, run_dir, split=split, checkpoint=checkpoint,
                             max_scenes=eval_scenes, progress=progress)
   with open(path) as f:
     result = json.load(f)
   want = eval_scenes or result["num_scenes"]
   got = (int(result["checkpoint"]["step"]), int(result["num_scenes"]))
   if got != (step, want):
-    raise sc.StudyError(f"{path}: evaluates step {got[0]} on {got[1]} scenes, not the last "
+    which = "last" if checkpoint == "latest" else checkpoint
+    raise sc.StudyError(f"{path}: evaluates step {got[0]} on {got[1]} scenes, not the {which} "
                         f"checkpoint {step} on {want}; move it aside to evaluate again")
   return result
 
@@ -107,17 +116,20 @@ def attempts_and_command_seed(run_dir: str, seed: int) -> tuple[int, int]:
 
 
 def workdir_row(run_dir: str, config, *, config_spec: str, study: str, name: str,
-                eval_split: str, eval_scenes: Optional[int], progress: bool = True) -> dict:
+                eval_split: str, eval_scenes: Optional[int], progress: bool = True,
+                checkpoint: str = "latest") -> dict:
   """One study row (study_common.CSV_COLUMNS, and `attempts`, `command_seed`) for a finished run
   trained by the entry point; `config` is what `check_workdir(run_dir, config_spec)` returned."""
   from slotlifter_jax import collapse
+  if checkpoint not in ("latest", "best"):
+    raise sc.StudyError(f"checkpoint={checkpoint!r}: use latest or best")
   result = _evaluation(config, run_dir, split=eval_split, eval_scenes=eval_scenes,
-                       progress=progress)
+                       progress=progress, checkpoint=checkpoint)
   train_records, val_records = sc.read_log(run_dir)
   clock = [float(r["wall_s"]) for r in train_records + val_records if "wall_s" in r]
   row = dict(
       study=study, name=name, config=config_spec, overrides={}, seed=int(config.seed),
-      num_steps=int(config.train.num_steps), run_id=workdir_id(run_dir),
+      num_steps=int(config.train.num_steps), run_id=workdir_id(run_dir, checkpoint),
       run_dir=os.path.abspath(run_dir), train_s=max(clock, default=math.nan),
       train_segments=math.nan, step_s=sc.median_step_seconds(train_records),
       eval_split=eval_split, eval_scenes=int(result["num_scenes"]),
@@ -128,7 +140,9 @@ def workdir_row(run_dir: str, config, *, config_spec: str, study: str, name: str
   for k in sc.METRIC_KEYS:
     value = result["metrics"].get(k, {}).get("mean")
     row[k] = math.nan if value is None else float(value)
-  row.update(sc.collapse_record(val_records, collapse.settled_step(config.train)))
+  # The collapse flag of the validation that chose (best) or followed (latest) the checkpoint.
+  upto = [r for r in val_records if int(r["step"]) <= row["checkpoint_step"]]
+  row.update(sc.collapse_record(upto, collapse.settled_step(config.train)))
   return row
 
 

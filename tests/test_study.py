@@ -386,10 +386,11 @@ def test_diagnose_slots_runs_on_a_trained_run(smoke_run, capsys):
 
 
 def _finished_run(path, *, seed, fg_ari, psnr, step=6, collapsed=0.0, scenes=2, spec=SMOKE,
-                  archived=(), **changes):
+                  archived=(), best_step=None, eval_step=None, **changes):
   """A run directory as `slotlifter_jax.main` leaves it after the smoke budget, with evaluation
   numbers chosen by hand (no training: the checks and the row read only these files); `archived`
-  names the seeds of attempts that restarted, kept as DIR/restarted/seed_<seed>/."""
+  names the seeds of attempts that restarted, kept as DIR/restarted/seed_<seed>/; `best_step`
+  adds a best checkpoint and `eval_step` the step its evaluation read (default: the last)."""
   from slotlifter_jax import checkpoints
   from slotlifter_jax.data import embedded
   config = sc.load_config(spec)
@@ -401,14 +402,19 @@ def _finished_run(path, *, seed, fg_ari, psnr, step=6, collapsed=0.0, scenes=2, 
     config[section][field] = value
   checkpoints.save_config(embedded.resolve_data(config), str(path))
   os.makedirs(path / "checkpoints" / "latest" / str(step))
+  if best_step is not None:
+    os.makedirs(path / "checkpoints" / "best" / str(best_step))
   log = [{"step": 2, "kind": "train", "steps_per_sec": 4.0, "wall_s": 1.0},
          {"step": 4, "kind": "train", "steps_per_sec": 2.0, "wall_s": 2.0},
+         {"step": 4, "kind": "val", "collapsed": 0.0, "probe_active_slots": 2.0,
+          "probe_largest_share": 0.7, "wall_s": 2.2},
          {"step": 6, "kind": "train", "steps_per_sec": 5.0, "wall_s": 2.5},
          {"step": 6, "kind": "val", "collapsed": collapsed, "probe_active_slots": 3.0,
           "probe_largest_share": 0.5, "wall_s": 3.0}]
   (path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in log))
   metrics = {"psnr_novel": psnr, "fg_ari": fg_ari, "ari": 0.9, "nv_ari": 0.8}
-  evaluation = {"split": "test", "num_scenes": scenes, "checkpoint": {"step": step},
+  evaluation = {"split": "test", "num_scenes": scenes,
+                "checkpoint": {"step": step if eval_step is None else eval_step},
                 "metrics": {k: {"mean": v} for k, v in metrics.items()},
                 "timing": {"render_per_view_s": 0.05, "total_s": 7.0}}
   os.makedirs(path / "eval" / "test")
@@ -448,6 +454,30 @@ def test_workdir_rows_read_the_runs_and_refuse_what_is_not_one_config(tmp_path):
   refused(r"a/eval/test/metrics.json: evaluates step 6 on 2 scenes, not .* 6 on 3", [a],
           eval_scenes=3)
   assert (a / "eval" / "test" / "metrics.json").read_text() == before
+
+
+def test_workdir_rows_of_the_best_checkpoint(tmp_path):
+  """--checkpoint=best: the evaluation `main --mode=eval` leaves by default (the best checkpoint,
+  here step 4 of 6) is a row of its own; the last checkpoint's row refuses it."""
+  from experiments import study_workdirs as sw
+  kwargs = dict(config_spec=SMOKE, study="stability", name="full", eval_split="test",
+                eval_scenes=2)
+  a = _finished_run(tmp_path / "a", seed=0, fg_ari=0.7, psnr=21.0, best_step=4, eval_step=4)
+  (row,) = sw.workdir_rows([str(a)], checkpoint="best", **kwargs)
+  assert row["checkpoint_step"] == 4 and row["fg_ari"] == 0.7
+  # The validation at step 4 chose it: its probe, not the later one at step 6.
+  assert row["collapse_step"] == 4 and row["probe_active_slots"] == 2.0
+  assert row["run_id"] == sw.workdir_id(str(a)) + "-best"
+  with pytest.raises(sc.StudyError, match=r"evaluates step 4 on 2 scenes, not the last "
+                                          r"checkpoint 6 on 2"):
+    sw.workdir_rows([str(a)], **kwargs)
+  # A run whose best checkpoint is its last: one state, so the last step's evaluation serves.
+  b = _finished_run(tmp_path / "b", seed=1, fg_ari=0.8, psnr=22.0, best_step=6)
+  (row,) = sw.workdir_rows([str(b)], checkpoint="best", **kwargs)
+  assert row["checkpoint_step"] == 6 and row["collapse_step"] == 6
+  with pytest.raises(sc.StudyError, match=r"/c: no best checkpoint"):
+    sw.workdir_rows([str(_finished_run(tmp_path / "c", seed=2, fg_ari=0.5, psnr=20.0))],
+                    checkpoint="best", **kwargs)
 
 
 def test_a_restarted_run_counts_as_its_command_seed(tmp_path):
@@ -500,6 +530,19 @@ def test_stability_cli_summarises_workdirs(tmp_path):
   assert proc.returncode == 1 and (results / "stability.md").read_text() == table
   assert proc.stderr.strip().splitlines()[-1].startswith(f"[stability] {bad}: trained with "
                                                          f"render.num_samples=4")
+  # --checkpoint=best: what `main --mode=eval` reported, in its own table beside the last one's.
+  best = [_finished_run(tmp_path / f"best{s}", seed=s, fg_ari=fg, psnr=22.0, best_step=4,
+                        eval_step=4) for s, fg in ((0, 0.9), (1, 0.7))]
+  proc = subprocess.run(args[:-1] + ["--checkpoint=best", "--workdirs=" + ",".join(map(str, best))],
+                        cwd=REPO, capture_output=True, text=True, timeout=300)
+  assert proc.returncode == 0, proc.stderr[-2000:]
+  assert (results / "stability.md").read_text() == table
+  best_table = (results / "stability_best.md").read_text()
+  assert "at the best checkpoint" in best_table and "80.0 ± 14.1 [70.0, 90.0]" in best_table
+  assert len(_csv_rows(results / "stability.csv")) == 4
+  proc = subprocess.run(args[:-1] + ["--checkpoint=best"], cwd=REPO, capture_output=True,
+                        text=True, timeout=300)
+  assert proc.returncode == 2 and "--checkpoint=best needs --workdirs" in proc.stderr
 
 
 def test_pareto_fast_grid_plans_one_axis_of_fast_at_its_own_budget(tmp_path, capsys):
