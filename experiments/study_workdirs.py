@@ -8,7 +8,9 @@ with one line naming its directory and the problem:
   - its DIR/config.json equals the named config (`configs/<file>.py[:variant]`) except for the
     seed and the fields that cannot change the trained parameters (NOT_TRAINING: how often it
     validated, logged or checkpointed, and how it picked its best checkpoint); a field the saved
-    config lacks was added to the code later and reads as its default, as on resume;
+    config lacks was added to the code later and reads as its default, as on resume; the
+    embedded data set may lie under another cache root ($SLOTLIFTER_DATA_CACHE) when its folder
+    name, which holds every generator argument, is the same;
   - a run that restarted (`train.restarts`, slotlifter_jax/restarts.py) saved its last attempt's
     seed and the restarts it had left: each attempt archived under DIR/restarted/ spent one, so
     the named config's count less the archived attempts must equal the saved one. Its row keeps
@@ -61,7 +63,6 @@ def check_workdir(run_dir: str, config_spec: str):
   """The run's config (the named one with its seed and resolved data), after the checks of the
   module docstring that need no evaluation; raises StudyError naming the problem."""
   from slotlifter_jax import checkpoints
-  from slotlifter_jax.data import embedded
   if not os.path.isdir(run_dir):
     raise sc.StudyError(f"--workdirs: {run_dir} is not a directory")
   saved = checkpoints.load_saved_config(run_dir)
@@ -71,7 +72,7 @@ def check_workdir(run_dir: str, config_spec: str):
   config.seed = int(saved.get("seed", 0))
   attempts, _ = attempts_and_command_seed(run_dir, config.seed)
   config.train.restarts = int(config.train.restarts) - (attempts - 1)  # one spent per restart
-  config = embedded.resolve_data(config)  # the embedded set's path, as the run saved it
+  config = _embedded_root_as_saved(config, saved)
   diffs = training_differences(saved, config)
   if diffs:
     field, (a, b) = next(iter(diffs.items()))
@@ -82,6 +83,22 @@ def check_workdir(run_dir: str, config_spec: str):
   if step != int(config.train.num_steps):
     raise sc.StudyError(f"{run_dir}: last checkpoint is step {step}, not the budget "
                         f"{config.train.num_steps}; finish training with the same command first")
+  return config
+
+
+def _embedded_root_as_saved(config, saved: dict):
+  """`config` with the embedded set's root filled in, as the run saved it when the run trained
+  on the same set. The set's folder name holds every generator argument (data/embedded.py), so a
+  run that generated it under another cache root ($SLOTLIFTER_DATA_CACHE) trained on the same
+  data; a run on another set keeps this cache's path, and the check names the difference. Nothing
+  is generated here."""
+  from slotlifter_jax.data import embedded
+  if config.data.root:
+    return config
+  mine = embedded.dataset_dir(config.data, seed=config.data.get("seed", 0))
+  theirs = str(saved.get("data", {}).get("root") or "")
+  with config.unlocked():
+    config.data.root = theirs if os.path.basename(theirs) == os.path.basename(mine) else mine
   return config
 
 

@@ -424,6 +424,7 @@ def _finished_run(path, *, seed, fg_ari, psnr, step=6, collapsed=0.0, scenes=2, 
 
 def test_workdir_rows_read_the_runs_and_refuse_what_is_not_one_config(tmp_path):
   from experiments import study_workdirs as sw
+  from slotlifter_jax.data import embedded
   a = _finished_run(tmp_path / "a", seed=0, fg_ari=0.6, psnr=20.0)
   # Another validation cadence and best-checkpoint rule do not change the trained parameters.
   b = _finished_run(tmp_path / "b", seed=3, fg_ari=0.8, psnr=22.0, collapsed=1.0,
@@ -449,6 +450,16 @@ def test_workdir_rows_read_the_runs_and_refuse_what_is_not_one_config(tmp_path):
   refused(r"/a and .*/e are both seed 0",
           [a, _finished_run(tmp_path / "e", seed=0, fg_ari=0.5, psnr=20.0)])
   refused(r"/f: no config.json", [os.makedirs(tmp_path / "f") or tmp_path / "f"])
+  # The same embedded set generated under another cache root ($SLOTLIFTER_DATA_CACHE) is the
+  # same data; a set of another size under that root is not.
+  root = embedded.resolve_data(sc.load_config(SMOKE)).data.root
+  moved = str(tmp_path / "other_cache" / os.path.basename(root))
+  (row,) = sw.workdir_rows([str(_finished_run(tmp_path / "g", seed=1, fg_ari=0.5, psnr=20.0,
+                                              data__root=moved))], **kwargs)
+  assert row["seed"] == 1
+  refused(r"/h: trained with data.root='.*other_cache/.*-s1', but configs/clevr.py:smoke has",
+          [_finished_run(tmp_path / "h", seed=1, fg_ari=0.5, psnr=20.0,
+                         data__root=moved[:-1] + "1")])
   # An evaluation of other scenes is refused, not overwritten.
   before = (a / "eval" / "test" / "metrics.json").read_text()
   refused(r"a/eval/test/metrics.json: evaluates step 6 on 2 scenes, not .* 6 on 3", [a],
