@@ -86,8 +86,9 @@ def table(rows: list[dict], *, config: str = ablations.BASE, checkpoint: str = "
                  ("yes" if float(flag) == 1.0 else "no"))
     attempts = r.get("attempts", "")
     cells.append("–" if attempts in ("", None) else str(int(float(attempts))))
-    cells += [str(int(float(r["checkpoint_step"]))), f"{float(r['train_s']):.0f}",
-              str(r["run_id"])]
+    step = r.get("checkpoint_step", "")
+    cells += ["–" if step in ("", None) else str(int(float(step))),
+              f"{float(r['train_s']):.0f}", str(r["run_id"])]
     out.append("| " + " | ".join(cells) + " |")
   return "\n".join(out) + "\n"
 
