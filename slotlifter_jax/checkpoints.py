@@ -20,6 +20,7 @@ from absl import logging
 import orbax.checkpoint as ocp
 from etils import epath
 
+from slotlifter_jax import averaging
 from slotlifter_jax import train_step as step_lib
 from slotlifter_jax.data.types import Scene
 
@@ -202,6 +203,11 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
     a, b = saved.get(section, {}).get(key), current.get(section, {}).get(key)
     if _normalise(a) != _normalise(b):
       diffs.append(f"{field}: saved {a!r}, requested {b!r}")
+  # The optimiser state holds the parameters' average only when it is on (averaging.py).
+  a, b = saved.get("train", {}), current.get("train", {})
+  if averaging.enabled(a) != averaging.enabled(b):
+    diffs.append(f"train.ema_decay: saved {a.get('ema_decay')!r}, requested "
+                 f"{b.get('ema_decay')!r} (the average is on in one and off in the other)")
   if diffs:
     raise CheckpointMismatchError(
         f"{where}: the run in this directory was made with another model config:\n  "
@@ -300,4 +306,4 @@ def restore_params(model, config, workdir: str, *, scene: Scene,
     state = manager.restore(abstract, step=step, which=which)
   finally:
     manager.close()
-  return state.params, step, step_dir
+  return averaging.eval_params(state, config.train), step, step_dir

@@ -188,6 +188,11 @@ def base_config() -> ml_collections.ConfigDict:
   # this step on (0: from the start), up to `locality_steps`.
   t.locality_attention_start = 0
   t.max_nonfinite_in_row = 20
+  # Not in the paper: an exponential moving average of the parameters with this decay (0: off),
+  # tracking them exactly until `ema_start_step` updates; validation, evaluation and rendering then
+  # use the average (slotlifter_jax/averaging.py).
+  t.ema_decay = 0.0
+  t.ema_start_step = 0
   # Restart a run from a new seed (seed + 1000) at most this many times, when validation flags it
   # as collapsed after the masking and slot-noise schedules, or when its selection score
   # (`select_by`) is below `restart_min_score` at step `restart_check_step` (0: no such check).

@@ -22,6 +22,7 @@ import numpy as np
 from absl import logging
 from tqdm import tqdm
 
+from slotlifter_jax import averaging
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import collapse
 from slotlifter_jax import encoder as encoder_lib
@@ -157,6 +158,12 @@ def _check_restarts(train_config) -> None:
     raise ConfigError(problem)
 
 
+def _check_averaging(train_config) -> None:
+  problem = averaging.config_problem(train_config)
+  if problem:
+    raise ConfigError(problem)
+
+
 def _check_sampler(config, train_scenes) -> bool:
   """Validates data.sampler, data.curriculum and train.steps_per_dispatch; True for "device"."""
   sampler = config.data.get("sampler", "host")
@@ -252,6 +259,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   _check_rates(config.train)
   _check_selection(config.train)
   _check_restarts(config.train)
+  _check_averaging(config.train)
   try:
     views_lib.check_supersample(config.render)  # validation renders with it
     encoder_lib.check_output_stride(config.model.get("encoder_output_stride", 4))
@@ -380,7 +388,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
                 f"{in_row} non-finite steps in a row at step {done}; stopping. The last good "
                 f"checkpoint in {workdir}/checkpoints is intact.")
         if done % config.train.eval_every == 0 or done == total:
-          last_val = validator.run(_process_local(state.params), done)
+          last_val = validator.run(
+              _process_local(averaging.eval_params(state, config.train)), done)
           last_val["wall_s"] = clock.elapsed()
           last_val["num_val_scenes"] = len(validator.scenes)
           writer.write(done, "val", last_val)

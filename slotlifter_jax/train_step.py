@@ -20,6 +20,7 @@ import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
+from slotlifter_jax import averaging
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import schedules
 from slotlifter_jax.data import device_sampler
@@ -77,10 +78,14 @@ def make_optimizer(train_config) -> optax.GradientTransformation:
   split = schedules.has_slot_attention_group(c)
   if split:
     groups["slot_attention"] = make(lambda t: schedules.slot_attention_lr(t, c))
-  return optax.chain(
-      optax.clip_by_global_norm(c.grad_clip),
-      optax.multi_transform(groups, lambda p: param_groups(p, split_slot_attention=split)),
-  )
+  chain = [optax.clip_by_global_norm(c.grad_clip),
+           optax.multi_transform(groups, lambda p: param_groups(p, split_slot_attention=split))]
+  problem = averaging.config_problem(c)
+  if problem:
+    raise ValueError(problem)
+  if averaging.enabled(c):  # off, the state stays that of every earlier checkpoint
+    chain.append(averaging.param_ema(float(c.ema_decay), int(c.get("ema_start_step", 0))))
+  return optax.chain(*chain)
 
 
 def model_inputs(batch: dict, *, signed_colour: bool) -> dict:

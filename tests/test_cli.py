@@ -148,6 +148,8 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
      "train.select_by must be one of ('nv_ari', 'min_fg_nv', 'psnr_novel'), got 'fg_ari'"),
     (["--config=configs/clevr.py:smoke", "--config.train.restart_check_step=4"],
      "train.restart_check_step=4 must be 0 (no check) or a multiple of train.eval_every=3"),
+    (["--config=configs/clevr.py:smoke", "--config.train.ema_decay=1.0"],
+     "train.ema_decay is 1.0; use 0 (off) or a value in (0, 1)"),
     (["--config=configs/clevr.py:smoke", "--config.render.supersample=0"],
      "render.supersample is 0; it must be an integer ≥ 1"),
     (["--config=configs/clevr.py:smoke", "--config.model.encoder_output_stride=3"],
