@@ -9,7 +9,7 @@ Each applied update sets
 where θ are the parameters after the update, so the average covers about the last 1 / (1 − d)
 updates from its start on. Validation (and with it the best checkpoint and the restart check),
 evaluation and rendering read `eval_params`: the average when it is on, the trained parameters
-otherwise. A skipped (non-finite) step keeps the old optimiser state (train_step), so it leaves
+otherwise (`--params=trained` evaluates or renders the trained ones of a run that keeps both). A skipped (non-finite) step keeps the old optimiser state (train_step), so it leaves
 the average as it was.
 
 Why: over the release of `fast`'s masking floor, validation FG-ARI moves by up to 0.06 between
@@ -71,9 +71,19 @@ def param_ema(decay: float, start_step: int = 0) -> optax.GradientTransformation
   return optax.GradientTransformation(init, update)
 
 
-def eval_params(state, train_config) -> Any:
-  """The parameters that validation, evaluation and rendering use (module docstring)."""
-  if not enabled(train_config):
+PARAMS = ("average", "trained")
+
+
+def eval_params(state, train_config, which: str = "average") -> Any:
+  """The parameters that validation, evaluation and rendering use (module docstring).
+
+  which: "average" (the average when the run keeps one, else the trained parameters) or
+  "trained" (the trained parameters always). Both come from one training trajectory, since the
+  average never changes what trains, so evaluating both on one checkpoint pairs them exactly.
+  """
+  if which not in PARAMS:
+    raise ValueError(f"params={which!r}: must be one of {', '.join(PARAMS)}")
+  if which == "trained" or not enabled(train_config):
     return state.params
   (found,) = [x for x in jax.tree.leaves(state.opt_state,
                                          is_leaf=lambda x: isinstance(x, ParamEmaState))

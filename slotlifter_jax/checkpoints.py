@@ -282,9 +282,11 @@ def _parameter_differences(abstract_params, step_dir: str, *, limit: int = 8) ->
   return out[:limit] + ([f"... and {len(out) - limit} more"] if len(out) > limit else [])
 
 
-def restore_params(model, config, workdir: str, *, scene: Scene,
-                   checkpoint: str = "") -> tuple[dict, int, str]:
-  """(params, step, step directory) of the run's checkpoint `checkpoint` (see `_choose_checkpoint`).
+def restore_params(model, config, workdir: str, *, scene: Scene, checkpoint: str = "",
+                   params: str = "average") -> tuple[dict, int, str]:
+  """(params, step, step directory) of the run's checkpoint `checkpoint` (see `_choose_checkpoint`);
+  `params` chooses between a run's average of the parameters and its trained ones
+  (`averaging.eval_params`).
 
   Raises CheckpointMismatchError naming the parameters whose shapes differ when the checkpoint
   does not fit the model built from `config`. The shapes are compared on the checkpoint's
@@ -306,4 +308,4 @@ def restore_params(model, config, workdir: str, *, scene: Scene,
     state = manager.restore(abstract, step=step, which=which)
   finally:
     manager.close()
-  return averaging.eval_params(state, config.train), step, step_dir
+  return averaging.eval_params(state, config.train, params), step, step_dir

@@ -39,6 +39,7 @@ import numpy as np
 from absl import logging
 from tqdm import tqdm
 
+from slotlifter_jax import averaging
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import metrics
 from slotlifter_jax import model as model_lib
@@ -264,6 +265,7 @@ class LoadedRun:
   scenes: list[Scene]
   split: str
   differs_from_training: dict  # `differences_from_training`
+  parameters: str = "trained"  # "average" when the run's average of the parameters was restored
 
 
 def differences_from_training(config, saved: dict) -> dict:
@@ -286,8 +288,10 @@ def differences_from_training(config, saved: dict) -> dict:
 
 
 def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
-             checkpoint: str = "", max_scenes: Optional[int] = None) -> LoadedRun:
-  """Checks `config` against DIR/config.json, resolves and loads the split, restores parameters.
+             checkpoint: str = "", max_scenes: Optional[int] = None,
+             params: str = "average") -> LoadedRun:
+  """Checks `config` against DIR/config.json, resolves and loads the split, restores parameters:
+  the run's average of them, when it keeps one (`train.ema_decay`), unless params="trained".
 
   Raises:
     EvalSetupError: unknown split or checkpoint name.
@@ -298,6 +302,8 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
   """
   if split not in registry.SPLITS:
     raise EvalSetupError(f"--split={split!r}: must be one of {', '.join(registry.SPLITS)}")
+  if params not in averaging.PARAMS:
+    raise EvalSetupError(f"--params={params!r}: must be one of {', '.join(averaging.PARAMS)}")
   saved = ckpt_lib.load_saved_config(workdir)
   if saved is None:
     raise FileNotFoundError(f"{ckpt_lib.config_path(workdir)}: not found; {workdir} is not a "
@@ -319,11 +325,12 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
   if not scenes:
     raise DataError(f"{config.data.root}: split {split!r} has no scenes")
   model = model_lib.build_model(config)
-  params, step, step_dir = ckpt_lib.restore_params(model, config, workdir, scene=scenes[0],
-                                                   checkpoint=checkpoint)
-  return LoadedRun(config=config, model=model, params=params, step=step,
+  restored, step, step_dir = ckpt_lib.restore_params(model, config, workdir, scene=scenes[0],
+                                                     checkpoint=checkpoint, params=params)
+  used = "average" if params == "average" and averaging.enabled(config.train) else "trained"
+  return LoadedRun(config=config, model=model, params=restored, step=step,
                    checkpoint_dir=step_dir, scenes=scenes, split=split,
-                   differs_from_training=differs)
+                   differs_from_training=differs, parameters=used)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -342,6 +349,7 @@ class EvalResult:
   timing: dict[str, float]
   metrics_path: str
   per_scene_path: str
+  parameters: str = "trained"  # LoadedRun.parameters
 
 
 def _finite_or_none(x: float) -> Optional[float]:
@@ -374,7 +382,8 @@ def _ordered(keys) -> list[str]:
 def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: str = "test",
                    checkpoint: str = "", overwrite: bool = False,
                    max_scenes: Optional[int] = None, lpips_quirk: bool = False,
-                   nv_ari_last_view: bool = False, progress: bool = True) -> EvalResult:
+                   nv_ari_last_view: bool = False, progress: bool = True,
+                   params: str = "average") -> EvalResult:
   """`--mode=eval`: renders every view of every scene of `split` and writes the metrics.
 
   Writes DIR/eval/<split>/metrics.json (summary, definitions, checkpoint, quirks, timing) and
@@ -388,7 +397,8 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
   if os.path.exists(metrics_path) and not overwrite:
     raise FileExistsError(f"{metrics_path} exists; pass --overwrite to replace it")
   multihost.barrier("eval_start")  # every process has checked before process 0 writes the file
-  run = load_run(config, workdir, split=split, checkpoint=checkpoint, max_scenes=max_scenes)
+  run = load_run(config, workdir, split=split, checkpoint=checkpoint, max_scenes=max_scenes,
+                 params=params)
   net = lpips_net_for(run.config)
   renderer = adaptive.make_scene_renderer(run.model, run.config)  # render.adaptive switches
   t_setup = time.perf_counter() - t_start
@@ -429,7 +439,8 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
   names = [s.name for s in run.scenes]
   result = EvalResult(split=split, summary=summary, per_scene=per_scene, scene_names=names,
                       checkpoint_step=run.step, checkpoint_dir=run.checkpoint_dir, timing=timing,
-                      metrics_path=metrics_path, per_scene_path=per_scene_path)
+                      metrics_path=metrics_path, per_scene_path=per_scene_path,
+                      parameters=run.parameters)
   if not multihost.is_primary():  # every host evaluates the same scenes; one writes
     return result
 
@@ -447,6 +458,8 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
       "image_size": list(run.scenes[0].image_size),
       "data_root": run.config.data.root,
       "checkpoint": {"step": run.step, "path": run.checkpoint_dir},
+      # Which of a checkpoint's parameters: "average" (train.ema_decay > 0) or "trained".
+      "parameters": run.parameters,
       "quirks": {"lpips_quirk": bool(lpips_quirk), "nv_ari_last_view": bool(nv_ari_last_view)},
       "lpips_net": net,
       # Adaptive rendering (issue #7) approximates the plain path; record that it was used.
@@ -470,8 +483,9 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
 def format_table(result: EvalResult) -> str:
   """The means, standard errors and counts as a text table, with the evaluation time."""
   width = max([len("metric")] + [len(k) for k in result.summary]) + 2
+  average = ", average of the parameters" if result.parameters == "average" else ""
   lines = [f"split {result.split}: {len(result.per_scene)} scenes, checkpoint step "
-           f"{result.checkpoint_step} ({result.checkpoint_dir})",
+           f"{result.checkpoint_step} ({result.checkpoint_dir}){average}",
            f"{'metric':<{width}}{'mean':>10}{'s.e.':>10}{'n':>6}"]
   for k, s in result.summary.items():
     lines.append(f"{k:<{width}}{s.mean:>10.4f}{s.stderr:>10.4f}{s.count:>6d}")

@@ -3,7 +3,7 @@
 Modes: train (default; resumes from DIR's last checkpoint), eval (metrics of a split into
 DIR/eval/<split>/), render (panels and orbit GIFs of chosen scenes into DIR/render/<split>/).
   --mode=eval --split=test --checkpoint=best|latest|<step> [--overwrite] [--max_scenes=N]
-              [--lpips_quirk] [--nv_ari_last_view]
+              [--lpips_quirk] [--nv_ari_last_view] [--params=average|trained]
   --mode=render --split=test --scenes=0,3,5 --orbit_frames=24
 Several processes (one per host or per GPU): the same command on each, with --distributed and
   --coordinator_address=HOST:PORT --num_processes=N --process_id=I (or JAX_COORDINATOR_ADDRESS;
@@ -38,6 +38,9 @@ flags.DEFINE_bool("lpips_quirk", False, "eval: feed [0, 1] images to LPIPS as th
                   "does (docs/method.md §8).")
 flags.DEFINE_bool("nv_ari_last_view", False, "eval: NV-ARI from the last novel view only, as "
                   "uORF (docs/method.md §8).")
+flags.DEFINE_enum("params", "average", ["average", "trained"], "eval/render: a run that keeps "
+                  "an average of its parameters (train.ema_decay > 0) is evaluated with the "
+                  "average unless this says trained.")
 flags.DEFINE_string("scenes", "0", "render: comma-separated scene indices into the split.")
 flags.DEFINE_integer("orbit_frames", 24, "render: frames of the orbit GIF (at most 64).")
 flags.mark_flags_as_required(["config", "workdir"])
@@ -97,13 +100,13 @@ def main(argv):
       result = evaluate.evaluate_split(
           FLAGS.config, FLAGS.workdir, split=FLAGS.split, checkpoint=FLAGS.checkpoint,
           overwrite=FLAGS.overwrite, max_scenes=FLAGS.max_scenes, lpips_quirk=FLAGS.lpips_quirk,
-          nv_ari_last_view=FLAGS.nv_ari_last_view)
+          nv_ari_last_view=FLAGS.nv_ari_last_view, params=FLAGS.params)
       say(evaluate.format_table(result))
     else:
       for files in pictures.render_scenes(
           FLAGS.config, FLAGS.workdir, split=FLAGS.split,
           scene_indices=pictures.parse_scene_indices(FLAGS.scenes),
-          checkpoint=FLAGS.checkpoint, num_orbit_frames=FLAGS.orbit_frames):
+          checkpoint=FLAGS.checkpoint, num_orbit_frames=FLAGS.orbit_frames, params=FLAGS.params):
         say(f"scene {files.scene_index} ({files.scene_name}): {files.panel}\n  {files.orbit}")
   except (evaluate.EvalSetupError, checkpoints.CheckpointMismatchError, DataError,
           FileExistsError, FileNotFoundError) as e:
@@ -118,6 +121,10 @@ def _one_line(e: BaseException) -> str:
   while chain[-1].__cause__ is not None or chain[-1].__context__ is not None:
     chain.append(chain[-1].__cause__ or chain[-1].__context__)
   clean = lambda x: " ".join(str(x).replace("\\n", " ").replace("\\'", "'").strip("'\"").split())
+  if isinstance(e, flags.IllegalFlagValueError) and not str(e).startswith("flag --config"):
+    # absl's own message names the flag and the value ("flag --params=mean: value should be …");
+    # the innermost one does not. (--config's overrides keep ml_collections' chain, below.)
+    return f"{type(e).__name__}: {' '.join(str(e).split())}"
   # The innermost message, unless it is ml_collections' bare KeyError behind the "Did you mean".
   best = next(x for x in reversed(chain) if not (isinstance(x, KeyError) and x is not chain[0]))
   return f"{type(chain[-1]).__name__}: {clean(best).replace(chr(39) + ' Did you', ' - did you')}"

@@ -90,7 +90,8 @@ def test_bad_settings_name_the_field(decay, start, tmp_path):
 @pytest.mark.slow
 def test_a_run_with_the_average_is_evaluated_with_it(tmp_path):
   """A smoke run with the average on: its checkpoint holds both trees, evaluation restores the
-  average, and a config with the average off is refused by name rather than misread."""
+  average (the trained parameters with params="trained"), and a config with the average off is
+  refused by name rather than misread."""
   config = load_config()
   config.train.ema_decay, config.train.ema_start_step = 0.5, 2
   workdir = str(tmp_path / "run")
@@ -108,6 +109,14 @@ def test_a_run_with_the_average_is_evaluated_with_it(tmp_path):
   assert not all(np.allclose(a, b) for a, b in zip(jax.tree.leaves(ema), jax.tree.leaves(params)))
   run = evaluate.load_run(config, workdir, split="val", checkpoint="latest", max_scenes=1)
   jax.tree.map(np.testing.assert_array_equal, run.params, ema)
+  assert run.parameters == "average"
+  # --params=trained: the same checkpoint's trained parameters, for a pairing on one trajectory.
+  trained = evaluate.load_run(config, workdir, split="val", checkpoint="latest", max_scenes=1,
+                              params="trained")
+  jax.tree.map(np.testing.assert_array_equal, trained.params, params)
+  assert trained.parameters == "trained"
+  with pytest.raises(evaluate.EvalSetupError, match=r"--params='mean': must be one of"):
+    evaluate.load_run(config, workdir, split="val", checkpoint="latest", params="mean")
   off = load_config()
   with pytest.raises(ckpt_lib.CheckpointMismatchError, match=r"train.ema_decay: saved 0.5"):
     evaluate.load_run(off, workdir, split="val", checkpoint="latest", max_scenes=1)

@@ -6,6 +6,7 @@ Train, SIGINT, resume, eval and render, checking exit codes and files. The READM
 so the README and the commands that are known to work cannot drift apart.
 """
 
+import json
 import os
 import re
 import shlex
@@ -111,6 +112,8 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
 
   out = _run(_readme_command("eval"), tmp_path)
   assert os.path.isfile(tmp_path / workdir / "eval" / "test" / "metrics.json"), out[-3000:]
+  with open(tmp_path / workdir / "eval" / "test" / "metrics.json") as f:
+    assert json.load(f)["parameters"] == "trained"  # the README's run keeps no average
   render = _readme_command("render")
   out = _run(render, tmp_path)
   scenes = next(a.split("=", 1)[1] for a in render if a.startswith("--scenes="))
@@ -150,6 +153,10 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
      "train.restart_check_step=4 must be 0 (no check) or a multiple of train.eval_every=3"),
     (["--config=configs/clevr.py:smoke", "--config.train.ema_decay=1.0"],
      "train.ema_decay is 1.0; use 0 (off) or a value in (0, 1)"),
+    (["--config=configs/clevr.py:smoke", "--mode=eval", "--params=mean"],
+     "flag --params=mean: value should be one of <average|trained>"),
+    (["--config=configs/clevr.py:smoke", "--mode=render", "--orbit_frames=x"],
+     "flag --orbit_frames=x: invalid literal for int() with base 10: 'x'"),
     (["--config=configs/clevr.py:smoke", "--config.render.supersample=0"],
      "render.supersample is 0; it must be an integer ≥ 1"),
     (["--config=configs/clevr.py:smoke", "--config.model.encoder_output_stride=3"],

@@ -296,12 +296,12 @@ def checkpoint_name(checkpoint_dir: str) -> str:
 
 
 def scene_panel(scene: Scene, renders: CameraRenders, *, near: float, far: float,
-                checkpoint: str, step: int) -> np.ndarray:
+                checkpoint: str, step: int, parameters: str = "trained") -> np.ndarray:
   """The panel picture (module docstring) of all views of `scene`:
   [HEADER + n·(H + PAD) − PAD + FOOTER, LABEL_WIDTH + PAD + cols·(W + PAD) + SCALE_WIDTH, 3].
 
   checkpoint, step: the restored checkpoint ('best' | 'latest') and its training step, for the
-  footer.
+  footer, which also says when the parameters are the run's average (`parameters="average"`).
   """
   has_masks = scene.masks is not None
   k = renders.segmentation.shape[-1]
@@ -339,7 +339,8 @@ def scene_panel(scene: Scene, renders: CameraRenders, *, near: float, far: float
   panel[HEADER:HEADER + body, scale_x:scale_x + SCALE_WIDTH] = depth_scale(body, near=near,
                                                                            far=far)
   panel[HEADER + body:] = _text(panel.shape[1], FOOTER,
-                                [(1, 1, f"checkpoint {checkpoint} · step {int(step)}")])
+                                [(1, 1, f"checkpoint {checkpoint} · step {int(step)}"
+                                         + (" · average" if parameters == "average" else ""))])
   return panel
 
 
@@ -412,14 +413,15 @@ def parse_scene_indices(text: str) -> list[int]:
 
 def render_scenes(config: ml_collections.ConfigDict, workdir: str, *, split: str = "test",
                   scene_indices: Sequence[int] = (0,), checkpoint: str = "",
-                  num_orbit_frames: int = 24, progress: bool = True) -> list[RenderedFiles]:
+                  num_orbit_frames: int = 24, progress: bool = True,
+                  params: str = "average") -> list[RenderedFiles]:
   """`--mode=render`: writes the panel and orbit GIF of each chosen scene (module docstring)."""
   if not 1 <= num_orbit_frames <= MAX_ORBIT_FRAMES:
     raise evaluate.EvalSetupError(f"--orbit_frames={num_orbit_frames}: must be in "
                                   f"[1, {MAX_ORBIT_FRAMES}]")
   indices = list(scene_indices)
   run = evaluate.load_run(config, workdir, split=split, checkpoint=checkpoint,
-                          max_scenes=max(indices) + 1)
+                          max_scenes=max(indices) + 1, params=params)
   if max(indices) >= len(run.scenes):
     raise evaluate.EvalSetupError(f"--scenes: index {max(indices)} out of range; split {split!r} "
                                   f"has {len(run.scenes)} scenes")
@@ -438,7 +440,7 @@ def render_scenes(config: ml_collections.ConfigDict, workdir: str, *, split: str
     if write:
       vis.save_png(panel, scene_panel(scene, views, near=near, far=far,
                                       checkpoint=checkpoint_name(run.checkpoint_dir),
-                                      step=run.step))
+                                      step=run.step, parameters=run.parameters))
     source = scene.source_indices[0]
     poses = orbit_cam_to_world(source_cam_to_world=scene.cam_to_world[source],
                                num_frames=num_orbit_frames)
