@@ -258,7 +258,7 @@ def add_training_segment(run_dir: str, *, seconds: float, from_step: int, to_ste
   return timing
 
 
-def latest_step(run_dir: str, which: str = "latest") -> int:
+def checkpoint_step(run_dir: str, which: str = "latest") -> int:
   """The step of DIR/checkpoints/<which> ("latest" or "best"), the newest when it keeps several
   (orbax names step folders by number; 0 when none)."""
   folder = os.path.join(run_dir, "checkpoints", which)
@@ -379,7 +379,7 @@ def execute(run: Run, *, root: str = DEFAULT_ROOT, study: str = "", eval_split: 
   os.makedirs(run_dir, exist_ok=True)
   # Data generation is shared by every run of a data set and happens once: keep it off the clock.
   config = embedded.resolve_data(config)
-  start = latest_step(run_dir)
+  start = checkpoint_step(run_dir)
   if start < run.num_steps:
     t0 = time.perf_counter()
     try:
@@ -388,9 +388,9 @@ def execute(run: Run, *, root: str = DEFAULT_ROOT, study: str = "", eval_split: 
       raise TrainingStopped(f"{run_dir}: {e}") from e
     finally:
       add_training_segment(run_dir, seconds=time.perf_counter() - t0, from_step=start,
-                           to_step=latest_step(run_dir))
-    if latest_step(run_dir) < run.num_steps:
-      raise TrainingStopped(f"{run_dir}: training stopped at step {latest_step(run_dir)} of "
+                           to_step=checkpoint_step(run_dir))
+    if checkpoint_step(run_dir) < run.num_steps:
+      raise TrainingStopped(f"{run_dir}: training stopped at step {checkpoint_step(run_dir)} of "
                             f"{run.num_steps}; run the study again to resume")
 
   result = evaluate.evaluate_split(config, run_dir, split=eval_split, checkpoint=checkpoint,
@@ -421,7 +421,7 @@ def run_status(run: Run, *, root: str = DEFAULT_ROOT, eval_split: str = "test",
   run_dir = os.path.join(root, rid)
   if os.path.exists(result_path(run_dir, eval_split, eval_scenes)):
     return rid, "done", run.num_steps
-  step = latest_step(run_dir)
+  step = checkpoint_step(run_dir)
   return rid, ("trained" if step >= run.num_steps else "partial" if step else "new"), step
 
 

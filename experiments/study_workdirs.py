@@ -79,7 +79,7 @@ def check_workdir(run_dir: str, config_spec: str):
     more = f" (and {len(diffs) - 1} more)" if len(diffs) > 1 else ""
     raise sc.StudyError(f"{run_dir}: trained with {field}={a!r}, but {config_spec} has {b!r}"
                         f"{more}; only {', '.join(NOT_TRAINING)} may differ")
-  step = sc.latest_step(run_dir)
+  step = sc.checkpoint_step(run_dir)
   if step != int(config.train.num_steps):
     raise sc.StudyError(f"{run_dir}: last checkpoint is step {step}, not the budget "
                         f"{config.train.num_steps}; finish training with the same command first")
@@ -108,7 +108,7 @@ def _evaluation(config, run_dir: str, *, split: str, eval_scenes: Optional[int],
   path = os.path.join(run_dir, "eval", split, "metrics.json")
   # The best and the last checkpoint at one step hold one state (both managers save the step's
   # train state), so the step alone tells which checkpoint an evaluation read.
-  step = sc.latest_step(run_dir, checkpoint)
+  step = sc.checkpoint_step(run_dir, checkpoint)
   if not step:
     raise sc.StudyError(f"{run_dir}: no {checkpoint} checkpoint")
   if not os.path.exists(path):

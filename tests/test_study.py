@@ -68,7 +68,7 @@ def test_runner_trains_evaluates_and_records(smoke_run):
     saved = json.load(f)
   assert saved["train"]["mask_max"] == 0.0 and saved["train"]["num_steps"] == 6
   assert saved["seed"] == 0
-  assert sc.latest_step(run_dir) == 6 and row["checkpoint_step"] == 6
+  assert sc.checkpoint_step(run_dir) == 6 and row["checkpoint_step"] == 6
   assert row["eval_scenes"] == 1 and row["eval_split"] == "test"
   # Timing: one training segment, stored in the run directory, and a per-view render time.
   with open(os.path.join(run_dir, sc.TIMING_FILE)) as f:
