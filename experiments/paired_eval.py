@@ -12,8 +12,8 @@ metric rose and fell. Scenes differ more from each other than two settings do on
 the standard error of a paired difference is smaller than that of either mean: 1.4–2.4× for
 FG-ARI and 3.5–12× for novel PSNR on the comparisons of experiments/README.md, "Twelfth round".
 
-`--out` also writes the comparison as JSON (evaluation folders, their checkpoints and
-`differs_from_training`, and the rows printed); an existing file is replaced only with
+`--out` also writes the comparison as JSON (evaluation folders, their checkpoints,
+`differs_from_training` and `parameters`, and the rows printed); an existing file is replaced only with
 `--overwrite`.
 """
 
@@ -102,7 +102,9 @@ def _label(meta: dict, folder: str) -> str:
   differs = meta.get("differs_from_training") or {}
   setting = ", ".join(f"{k}={v[1]}" for k, v in differs.items()) or "as trained"
   step = (meta.get("checkpoint") or {}).get("step")
-  return f"{folder} (step {step}, {setting})"
+  # A run that keeps a moving average has two sets of parameters per checkpoint (--params).
+  params = ", average of the parameters" if meta.get("parameters") == "average" else ""
+  return f"{folder} (step {step}, {setting}{params})"
 
 
 def compare(folders: list[str], metrics: list[str]) -> dict:
@@ -113,12 +115,14 @@ def compare(folders: list[str], metrics: list[str]) -> dict:
   base_folder, base_meta, base_rows = evals[0]
   result = {"baseline": {"folder": base_folder, "label": _label(base_meta, base_folder),
                          "checkpoint": base_meta.get("checkpoint"),
-                         "differs_from_training": base_meta.get("differs_from_training")},
+                         "differs_from_training": base_meta.get("differs_from_training"),
+                         "parameters": base_meta.get("parameters", "trained")},
             "metrics": list(metrics), "others": []}
   for folder, meta, rows in evals[1:]:
     result["others"].append({
         "folder": folder, "label": _label(meta, folder), "checkpoint": meta.get("checkpoint"),
         "differs_from_training": meta.get("differs_from_training"),
+        "parameters": meta.get("parameters", "trained"),
         "rows": {m: paired_difference(base_rows, rows, m) for m in metrics}})
   return result
 

@@ -14,7 +14,7 @@ sys.path.insert(0, REPO)
 from experiments import paired_eval  # noqa: E402
 
 
-def _write_eval(folder, rows, *, differs=None, step=100):
+def _write_eval(folder, rows, *, differs=None, step=100, parameters=None):
   """An evaluation folder as --mode=eval writes it: per_scene.csv rows, metrics.json."""
   os.makedirs(folder)
   names = sorted({k for r in rows.values() for k in r})
@@ -24,7 +24,10 @@ def _write_eval(folder, rows, *, differs=None, step=100):
       f.write(",".join([str(i), scene, "4"] + [repr(float(r.get(k, math.nan))) for k in names])
               + "\n")
   with open(os.path.join(folder, "metrics.json"), "w") as f:
-    json.dump({"checkpoint": {"step": step}, "differs_from_training": differs or {}}, f)
+    meta = {"checkpoint": {"step": step}, "differs_from_training": differs or {}}
+    if parameters:  # written since --params; older evaluations lack it
+      meta["parameters"] = parameters
+    json.dump(meta, f)
   return str(folder)
 
 
@@ -71,7 +74,8 @@ def test_refuses_different_scenes_missing_files_and_metrics(tmp_path):
 
 def test_command_line_prints_writes_and_keeps_an_existing_file(tmp_path):
   a = _write_eval(tmp_path / "a", {"s0": {"fg_ari": 0.2}, "s1": {"fg_ari": 0.4}})
-  b = _write_eval(tmp_path / "b", {"s0": {"fg_ari": 0.5}, "s1": {"fg_ari": 0.5}})
+  b = _write_eval(tmp_path / "b", {"s0": {"fg_ari": 0.5}, "s1": {"fg_ari": 0.5}},
+                  parameters="average")
   out = tmp_path / "cmp.json"
   cmd = [sys.executable, "experiments/paired_eval.py", a, b, "--metrics=fg_ari", f"--out={out}"]
   done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
@@ -79,6 +83,10 @@ def test_command_line_prints_writes_and_keeps_an_existing_file(tmp_path):
   assert "+0.2000" in done.stdout  # (0.3 + 0.1) / 2
   written = json.loads(out.read_text())
   assert written["others"][0]["rows"]["fg_ari"]["difference"] == pytest.approx(0.2)
+  # Which parameters each side evaluated: a moving average's against the trained ones.
+  assert (written["baseline"]["parameters"], written["others"][0]["parameters"]) == (
+      "trained", "average")
+  assert "average of the parameters" in done.stdout
   before = out.read_bytes()
   again = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
   assert again.returncode == 1 and "--overwrite" in again.stderr
