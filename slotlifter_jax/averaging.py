@@ -75,20 +75,26 @@ PARAMS = ("average", "trained")
 
 
 def eval_params(state, train_config, which: str = "average") -> Any:
-  """The parameters that validation, evaluation and rendering use (module docstring).
+  """The parameters that validation, evaluation and rendering use (module docstring)."""
+  return chosen_params(state, train_config, which)[0]
 
-  which: "average" (the average when the run keeps one, else the trained parameters) or
-  "trained" (the trained parameters always). Both come from one training trajectory, since the
-  average never changes what trains, so evaluating both on one checkpoint pairs them exactly.
+
+def chosen_params(state, train_config, which: str = "average") -> tuple[Any, str]:
+  """(parameters, "average" | "trained": which of the two they are).
+
+  which: "average" (the average when the run keeps one and has averaged, else the trained
+  parameters) or "trained" (the trained parameters always). Both come from one training
+  trajectory, since the average never changes what trains, so evaluating both on one checkpoint
+  pairs them exactly.
   """
   if which not in PARAMS:
     raise ValueError(f"params={which!r}: must be one of {', '.join(PARAMS)}")
   if which == "trained" or not enabled(train_config):
-    return state.params
+    return state.params, "trained"
   (found,) = [x for x in jax.tree.leaves(state.opt_state,
                                          is_leaf=lambda x: isinstance(x, ParamEmaState))
               if isinstance(x, ParamEmaState)]
   # Before the first update the average holds nothing yet.
   # (Read from this process's copy: in a multi-process run the replicated count is a global array.)
   count = int(jax.device_get(found.count.addressable_data(0)))
-  return found.ema if count > 0 else state.params
+  return (found.ema, "average") if count > 0 else (state.params, "trained")

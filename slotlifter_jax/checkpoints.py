@@ -283,10 +283,10 @@ def _parameter_differences(abstract_params, step_dir: str, *, limit: int = 8) ->
 
 
 def restore_params(model, config, workdir: str, *, scene: Scene, checkpoint: str = "",
-                   params: str = "average") -> tuple[dict, int, str]:
-  """(params, step, step directory) of the run's checkpoint `checkpoint` (see `_choose_checkpoint`);
-  `params` chooses between a run's average of the parameters and its trained ones
-  (`averaging.eval_params`).
+                   params: str = "average") -> tuple[dict, str, int, str]:
+  """(params, which params, step, step directory) of the run's checkpoint `checkpoint` (see
+  `_choose_checkpoint`); `params` chooses between a run's average of the parameters and its
+  trained ones, and "which params" says which they are (`averaging.chosen_params`).
 
   Raises CheckpointMismatchError naming the parameters whose shapes differ when the checkpoint
   does not fit the model built from `config`. The shapes are compared on the checkpoint's
@@ -308,4 +308,5 @@ def restore_params(model, config, workdir: str, *, scene: Scene, checkpoint: str
     state = manager.restore(abstract, step=step, which=which)
   finally:
     manager.close()
-  return averaging.eval_params(state, config.train, params), step, step_dir
+  restored, used = averaging.chosen_params(state, config.train, params)
+  return restored, used, step, step_dir

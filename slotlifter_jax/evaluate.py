@@ -325,9 +325,8 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
   if not scenes:
     raise DataError(f"{config.data.root}: split {split!r} has no scenes")
   model = model_lib.build_model(config)
-  restored, step, step_dir = ckpt_lib.restore_params(model, config, workdir, scene=scenes[0],
-                                                     checkpoint=checkpoint, params=params)
-  used = "average" if params == "average" and averaging.enabled(config.train) else "trained"
+  restored, used, step, step_dir = ckpt_lib.restore_params(
+      model, config, workdir, scene=scenes[0], checkpoint=checkpoint, params=params)
   return LoadedRun(config=config, model=model, params=restored, step=step,
                    checkpoint_dir=step_dir, scenes=scenes, split=split,
                    differs_from_training=differs, parameters=used)
