@@ -9,6 +9,9 @@ with one line naming its directory and the problem:
     seed and the fields that cannot change the trained parameters (NOT_TRAINING: how often it
     validated, logged or checkpointed, and how it picked its best checkpoint); a field the saved
     config lacks was added to the code later and reads as its default, as on resume; the
+    moving average of the parameters (AVERAGE, `train.ema_decay`) never changes what trains, so
+    a run is evaluated with the parameters it kept, whatever the named config says, and its row
+    records which (`parameters`: "average" or "trained"); the
     embedded data set may lie under another cache root ($SLOTLIFTER_DATA_CACHE) when its folder
     name, which holds every generator argument, is the same;
   - a run that restarted (`train.restarts`, slotlifter_jax/restarts.py) saved its last attempt's
@@ -40,6 +43,9 @@ from experiments import study_common as sc
 # Fields that decide when the loop looks at the model, never what it trains.
 NOT_TRAINING = ("seed", "train.eval_every", "train.eval_scenes", "train.log_every",
                 "train.checkpoint_every", "train.select_by")
+# Fields that decide which parameters are evaluated (slotlifter_jax/averaging.py), never what
+# trains; a run is read with its own values of them.
+AVERAGE = ("train.ema_decay", "train.ema_start_step")
 
 
 def training_differences(saved: dict, config) -> dict:
@@ -73,6 +79,7 @@ def check_workdir(run_dir: str, config_spec: str):
   attempts, _ = attempts_and_command_seed(run_dir, config.seed)
   config.train.restarts = int(config.train.restarts) - (attempts - 1)  # one spent per restart
   config = _embedded_root_as_saved(config, saved)
+  config = _average_as_saved(config, saved)
   diffs = training_differences(saved, config)
   if diffs:
     field, (a, b) = next(iter(diffs.items()))
@@ -99,6 +106,18 @@ def _embedded_root_as_saved(config, saved: dict):
   theirs = str(saved.get("data", {}).get("root") or "")
   with config.unlocked():
     config.data.root = theirs if os.path.basename(theirs) == os.path.basename(mine) else mine
+  return config
+
+
+def _average_as_saved(config, saved: dict):
+  """`config` with the run's own moving-average settings (AVERAGE): a checkpoint holds the
+  average only when its run kept one, so it restores only with the run's setting."""
+  from slotlifter_jax import checkpoints
+  saved = checkpoints.with_base_defaults(saved)
+  with config.unlocked():
+    for field in AVERAGE:
+      section, key = field.split(".")
+      config[section][key] = saved[section][key]
   return config
 
 
@@ -153,6 +172,8 @@ def workdir_row(run_dir: str, config, *, config_spec: str, study: str, name: str
       checkpoint_step=int(result["checkpoint"]["step"]),
       render_per_view_s=float(result["timing"]["render_per_view_s"]),
       eval_s=float(result["timing"]["total_s"]))
+  # An evaluation written before the field existed used the trained parameters.
+  row["parameters"] = result.get("parameters", "trained")
   row["attempts"], row["command_seed"] = attempts_and_command_seed(run_dir, int(config.seed))
   for k in sc.METRIC_KEYS:
     value = result["metrics"].get(k, {}).get("mean")

@@ -131,10 +131,10 @@ def config_history_path(workdir: str) -> str:
 def config_changes(saved: dict, config: ml_collections.ConfigDict) -> dict:
   """{'section.field': [saved, requested]} for every field whose value differs.
 
-  A field the saved config lacks reads as its default (`_with_base_defaults`), so it is no change
+  A field the saved config lacks reads as its default (`with_base_defaults`), so it is no change
   (a `[None, default]` entry would claim one).
   """
-  saved = _with_base_defaults(saved)
+  saved = with_base_defaults(saved)
   current = json.loads(config.to_json_best_effort())
   changes = {}
   def walk(a: dict, b: dict, prefix: str):
@@ -191,8 +191,8 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
   """
   if saved is None:
     return
-  saved = _with_base_defaults(saved)
-  current = _with_base_defaults(json.loads(config.to_json_best_effort()))
+  saved = with_base_defaults(saved)
+  current = with_base_defaults(json.loads(config.to_json_best_effort()))
   fields = sorted({f"{section}.{k}" for section in ARCHITECTURE_FIELDS
                    for cfg in (saved, current) for k in cfg.get(section, {})}
                   - set(NOT_ARCHITECTURE))
@@ -214,7 +214,7 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
         + "\n  ".join(diffs))
 
 
-def _with_base_defaults(cfg: dict) -> dict:
+def with_base_defaults(cfg: dict) -> dict:
   """`cfg` (a config as JSON) with every field it lacks set to `defaults.base_config()`'s value:
   a run saved before a field was added trained with the behaviour the field defaults to."""
   from slotlifter_jax import defaults

@@ -135,6 +135,34 @@ def test_workdir_rows_of_the_best_checkpoint(tmp_path):
                     checkpoint="best", **kwargs)
 
 
+def test_runs_are_read_with_the_parameters_they_kept(tmp_path):
+  """The moving average (`train.ema_decay`) never changes what trains: a run kept without it is
+  one of a config that keeps it, and the other way round; each is evaluated with what its
+  checkpoint holds (the config handed to the evaluation has the run's own setting), and its row
+  says which parameters its evaluation used."""
+  from experiments import study_workdirs as sw
+  kwargs = dict(study="stability", name="full", eval_split="test", eval_scenes=2)
+  plain = _finished_run(tmp_path / "plain", seed=0, fg_ari=0.8, psnr=20.0)
+  averaged = _finished_run(tmp_path / "avg", seed=1, fg_ari=0.7, psnr=21.0,
+                           train__ema_decay=0.99, train__ema_start_step=3)
+  (path := averaged / "eval" / "test" / "metrics.json").write_text(
+      json.dumps(dict(json.loads(path.read_text()), parameters="average")))
+  configs = [sw.check_workdir(str(d), SMOKE) for d in (plain, averaged)]
+  assert [(c.train.ema_decay, c.train.ema_start_step) for c in configs] == [(0.0, 0), (0.99, 3)]
+  # `fast` keeps the average; a run of it trained without one is read without one.
+  fast = "configs/clevr.py:fast+smoke"
+  assert sc.load_config(fast).train.ema_decay > 0
+  old = _finished_run(tmp_path / "old", seed=3, fg_ari=0.8, psnr=20.0, spec=fast,
+                      train__ema_decay=0.0)
+  assert sw.check_workdir(str(old), fast).train.ema_decay == 0.0
+  rows = sw.workdir_rows([str(plain), str(averaged)], config_spec=SMOKE, **kwargs)
+  assert [r["parameters"] for r in rows] == ["trained", "average"]
+  # Any other training field still has to match.
+  with pytest.raises(sc.StudyError, match=r"/lr: trained with train.base_lr=0.5"):
+    sw.check_workdir(str(_finished_run(tmp_path / "lr", seed=2, fg_ari=0.5, psnr=20.0,
+                                       train__ema_decay=0.99, train__base_lr=0.5)), SMOKE)
+
+
 def test_a_restarted_run_counts_as_its_command_seed(tmp_path):
   """`train.restarts`: seed 1's first attempt was abandoned and seed 1001 trained the run, which
   then had one of fast's two restarts left."""
