@@ -72,7 +72,7 @@ def table(rows: list[dict], *, config: str = ablations.BASE, checkpoint: str = "
          st.markdown_table(groups, columns=COLUMNS, extremes=True), "",
          "Per seed:\n"]
   head = (["seed"] + [h for _, h, _, _ in COLUMNS] +
-          ["collapsed", "attempts", "checkpoint step", "train s", "run"])
+          ["collapsed", "attempts", "checkpoint step", "parameters", "train s", "run"])
   out.append("| " + " | ".join(head) + " |")
   out.append("|" + "---|" * len(head))
   for r in sorted(rows, key=_command_seed):
@@ -88,6 +88,8 @@ def table(rows: list[dict], *, config: str = ablations.BASE, checkpoint: str = "
     cells.append("–" if attempts in ("", None) else str(int(float(attempts))))
     step = r.get("checkpoint_step", "")
     cells += ["–" if step in ("", None) else str(int(float(step))),
+              # Which parameters the evaluation read (study_workdirs); unknown for older rows.
+              str(r.get("parameters") or "–"),
               f"{float(r['train_s']):.0f}", str(r["run_id"])]
     out.append("| " + " | ".join(cells) + " |")
   return "\n".join(out) + "\n"

@@ -157,6 +157,8 @@ def test_runs_are_read_with_the_parameters_they_kept(tmp_path):
   assert sw.check_workdir(str(old), fast).train.ema_decay == 0.0
   rows = sw.workdir_rows([str(plain), str(averaged)], config_spec=SMOKE, **kwargs)
   assert [r["parameters"] for r in rows] == ["trained", "average"]
+  table = stability.table(rows, config=SMOKE)
+  assert "| 6 | trained |" in table and "| 6 | average |" in table  # checkpoint step, parameters
   # Any other training field still has to match.
   with pytest.raises(sc.StudyError, match=r"/lr: trained with train.base_lr=0.5"):
     sw.check_workdir(str(_finished_run(tmp_path / "lr", seed=2, fg_ari=0.5, psnr=20.0,
