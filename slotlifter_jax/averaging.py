@@ -83,7 +83,8 @@ def chosen_params(state, train_config, which: str = "average") -> tuple[Any, str
   """(parameters, "average" | "trained": which of the two they are).
 
   which: "average" (the average when the run keeps one and has averaged, else the trained
-  parameters) or "trained" (the trained parameters always). Both come from one training
+  parameters) or "trained" (the trained parameters always). Until an update after
+  `ema_start_step` the average is a copy of the parameters, so those are "trained". Both come from one training
   trajectory, since the average never changes what trains, so evaluating both on one checkpoint
   pairs them exactly.
   """
@@ -94,7 +95,9 @@ def chosen_params(state, train_config, which: str = "average") -> tuple[Any, str
   (found,) = [x for x in jax.tree.leaves(state.opt_state,
                                          is_leaf=lambda x: isinstance(x, ParamEmaState))
               if isinstance(x, ParamEmaState)]
-  # Before the first update the average holds nothing yet.
+  # `param_ema` copies the parameters for its first max(start, 1) updates, so the average holds
+  # nothing else until the count passes that (before the first update it holds nothing at all).
   # (Read from this process's copy: in a multi-process run the replicated count is a global array.)
   count = int(jax.device_get(found.count.addressable_data(0)))
-  return (found.ema, "average") if count > 0 else (state.params, "trained")
+  averaged = count > max(int(train_config.get("ema_start_step", 0)), 1)
+  return (found.ema, "average") if averaged else (state.params, "trained")

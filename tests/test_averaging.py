@@ -45,6 +45,28 @@ def test_param_ema_follows_the_recurrence(start):
   assert not np.allclose(state.ema["a"], params["a"], atol=1e-3)
 
 
+@pytest.mark.parametrize("start", [0, 3])
+def test_the_average_is_named_so_only_once_it_has_averaged(start):
+  """chosen_params: before the first update after `start` (the first one for start 0) the
+  average is a copy of the parameters, so they are named "trained"; from then on "average"."""
+  import ml_collections
+  from flax.training import train_state
+  train_config = ml_collections.ConfigDict(dict(ema_decay=0.5, ema_start_step=start))
+  tx = averaging.param_ema(0.5, start)
+  params = {"w": jnp.arange(3.0)}
+  state = train_state.TrainState.create(apply_fn=None, params=params, tx=tx)
+  names = []
+  for _ in range(5):
+    names.append(averaging.chosen_params(state, train_config)[1])
+    state = state.apply_gradients(grads={"w": jnp.ones(3)})
+  names.append(averaging.chosen_params(state, train_config)[1])
+  # Updates that copy: max(start, 1); the name changes after the first one that averages.
+  copies = max(start, 1)
+  assert names == ["trained"] * (copies + 1) + ["average"] * (5 - copies)
+  params, name = averaging.chosen_params(state, train_config, "trained")
+  assert name == "trained" and params is state.params
+
+
 def test_the_average_does_not_change_what_trains():
   """The same gradients through fast's optimiser with and without the average move the parameters
   identically; only the average is added to the state."""
