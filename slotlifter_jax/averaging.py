@@ -52,6 +52,11 @@ def config_problem(train_config) -> Optional[str]:
   return None
 
 
+def copied_updates(start_step: int) -> int:
+  """How many first updates set the average to a copy of the parameters (module docstring)."""
+  return max(int(start_step), 1)
+
+
 def param_ema(decay: float, start_step: int = 0) -> optax.GradientTransformation:
   """Leaves the updates as they are and keeps the average of the parameters they lead to."""
 
@@ -64,7 +69,7 @@ def param_ema(decay: float, start_step: int = 0) -> optax.GradientTransformation
     if params is None:
       raise ValueError("param_ema needs the parameters: call update(updates, state, params)")
     new = optax.apply_updates(params, updates)
-    d = jnp.where(state.count < max(start_step, 1), 0.0, decay).astype(jnp.float32)
+    d = jnp.where(state.count < copied_updates(start_step), 0.0, decay).astype(jnp.float32)
     ema = jax.tree.map(lambda e, p: (d * e + (1.0 - d) * p).astype(e.dtype), state.ema, new)
     return updates, ParamEmaState(count=state.count + 1, ema=ema)
 
@@ -83,10 +88,10 @@ def chosen_params(state, train_config, which: str = "average") -> tuple[Any, str
   """(parameters, "average" | "trained": which of the two they are).
 
   which: "average" (the average when the run keeps one and has averaged, else the trained
-  parameters) or "trained" (the trained parameters always). Until an update after
-  `ema_start_step` the average is a copy of the parameters, so those are "trained". Both come from one training
-  trajectory, since the average never changes what trains, so evaluating both on one checkpoint
-  pairs them exactly.
+  parameters) or "trained" (the trained parameters always). Until an update after the copied
+  ones (`copied_updates`) the average is a copy of the parameters, so those are "trained". Both
+  come from one training trajectory, since the average never changes what trains, so evaluating
+  both on one checkpoint pairs them exactly.
   """
   if which not in PARAMS:
     raise ValueError(f"params={which!r}: must be one of {', '.join(PARAMS)}")
@@ -95,9 +100,9 @@ def chosen_params(state, train_config, which: str = "average") -> tuple[Any, str
   (found,) = [x for x in jax.tree.leaves(state.opt_state,
                                          is_leaf=lambda x: isinstance(x, ParamEmaState))
               if isinstance(x, ParamEmaState)]
-  # `param_ema` copies the parameters for its first max(start, 1) updates, so the average holds
-  # nothing else until the count passes that (before the first update it holds nothing at all).
+  # Before the first update the average holds nothing at all, and until the count passes the
+  # copied updates nothing but the parameters.
   # (Read from this process's copy: in a multi-process run the replicated count is a global array.)
   count = int(jax.device_get(found.count.addressable_data(0)))
-  averaged = count > max(int(train_config.get("ema_start_step", 0)), 1)
+  averaged = count > copied_updates(train_config.get("ema_start_step", 0))
   return (found.ema, "average") if averaged else (state.params, "trained")
