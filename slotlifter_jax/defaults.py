@@ -243,7 +243,7 @@ def quick(c):
   samples, and every schedule compressed to the shorter run.
 
   Two settings differ from a plain compression of the paper's, both measured on clevr
-  (README, "The quick model"):
+  (docs/quick_model.md):
   - s_σ starts at −3 instead of 0 (`model.density_log_init`). With 32 samples a ray is opaque
     within its first two samples at initialisation (α ≈ 0.9 at σ ≈ 1, δ·25 ≈ 1.6); every run
     that started so stayed in a "fog" at the near plane (depth = near, σ ≈ 30–150 on every
@@ -260,7 +260,7 @@ def quick(c):
   steps/s with validations and checkpoints, so the whole run alone would take about 44 min (an
   estimate from that rate, not a measurement). Then `--mode=eval` on the 100-scene test split (best checkpoint,
   step 5000): novel-view PSNR 22.81 ± 0.16 dB, FG-ARI 0.172 ± 0.011, NV-ARI 0.654 ± 0.013,
-  ARI 0.732. The targets (PSNR ≥ 28 dB, FG-ARI ≥ 0.8) are not met (README, "The quick model").
+  ARI 0.732. The targets (PSNR ≥ 28 dB, FG-ARI ≥ 0.8) are not met (docs/quick_model.md).
   """
   c.data.image_size = 64
   c.data.num_train_scenes = 1000
