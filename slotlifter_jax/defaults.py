@@ -429,10 +429,9 @@ def fast(c):
   CPU (mimalloc). Every seed meets FG-ARI and NV-ARI ≥ 0.8 on the 100-scene test split (best
   checkpoint, the average: FG-ARI 0.815–0.868, NV-ARI 0.820–0.866, novel PSNR 25.7–26.1 dB),
   seed 0 after one restart (as seed 1000), in 46–64 min of training each (README, "Objects
-  emerging";
-  experiments/README.md, "Thirtieth round" to "Thirty-second round"). On the 2.4× slower
-  2026-11-27 host seed 3 trained in 79.5 min alone; there seeds 1 and 4 failed the step-14 000
-  check, which adds 14 000 steps. Earlier recipes' seed tables (60 000 steps; base_lr 5e-5) are
+  emerging"; experiments/README.md, "Thirtieth round" to "Thirty-second round"). On the 2.4×
+  slower 2026-11-27 host seed 3 trained in 79.5 min alone; there seeds 1 and 4 failed the
+  step-14 000 check, which adds 14 000 steps. Earlier recipes' seed tables (60 000 steps; base_lr 5e-5) are
   in experiments/README.md, "Sixth round" to "Eighth round" and "Twenty-first round" to
   "Twenty-fifth round".
   """
