@@ -1,6 +1,8 @@
 """Process set-up: allocator choice and XLA flags (no re-exec happens in tests: JAX is imported)."""
 
+import importlib
 import os
+import sys
 
 import pytest
 
@@ -66,7 +68,8 @@ def test_xla_flags_added_once_and_user_values_kept():
 
 
 def test_no_reexec_once_jax_is_loaded(monkeypatch):
-  import jax  # noqa: F401  (the allocator of a running JAX process cannot change)
+  # The allocator of a running JAX process cannot change, so once jax is loaded nothing re-execs.
+  assert importlib.import_module("jax").__name__ in sys.modules
   monkeypatch.setattr(os, "execve", lambda *a: pytest.fail("must not re-exec"))
   runtime.reexec_with_allocator()
 

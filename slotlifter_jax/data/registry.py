@@ -17,6 +17,7 @@ Nothing is cached or written: not into the data folders, nor anywhere else.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import os
 from typing import Optional
 
@@ -68,8 +69,7 @@ def _load_uorf(d, split: str, max_scenes: Optional[int]) -> list[Scene]:
     folder = split_folder(d.root, d.subset, "train")
     logging.info("%s: no %s_val folder; holding out the last %d training scenes as 'val'",
                  d.root, d.subset, d.num_val_scenes)
-    def select(names, split=split):
-      return hold_out(names, split=split, num_val=int(d.num_val_scenes), where=folder)
+    select = functools.partial(hold_out, split=split, num_val=int(d.num_val_scenes), where=folder)
   if folder is None:
     raise DataError(f"{os.path.join(d.root, f'{d.subset}_{split}')}: split folder does not exist "
                     f"(also looked for {os.path.join(d.root, d.subset, f'{d.subset}_{split}')})")
