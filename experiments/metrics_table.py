@@ -84,9 +84,8 @@ def table(groups: list[tuple[str, list[str]]], metrics: list[str]) -> str:
                  f"{', '.join(steps)}, parameters {'/'.join(params)}")
   stats = st.aggregate(rows, metrics=metrics, order=[n for n, _ in groups])
   columns = [(m, m, 1.0, DIGITS.get(m, 3)) for m in metrics]
-  text = st.markdown_table(stats, columns=columns)
-  # The collapse column needs each run's validation flag, which metrics.json does not hold.
-  text = "\n".join(line.rsplit("|", 2)[0] + "|" for line in text.splitlines())
+  # No collapse column: it needs each run's validation flag, which metrics.json does not hold.
+  text = st.markdown_table(stats, columns=columns, collapse=False)
   return text + "\n\n" + "\n".join(notes) + "\n"
 
 

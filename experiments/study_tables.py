@@ -96,18 +96,19 @@ def format_stat(s: Stat, *, scale: float = 1.0, digits: int = 1, extremes: bool 
 
 
 def markdown_table(groups: Sequence[dict], *, columns: Sequence[tuple[str, str, float, int]],
-                   group_by: str = "name", extremes: bool = False) -> str:
+                   group_by: str = "name", extremes: bool = False, collapse: bool = True) -> str:
   """A markdown table: one row per group; columns = (metric, header, scale, digits); a collapse
-  column 'k/n' at the end."""
-  head = [group_by, "runs"] + [h for _, h, _, _ in columns] + ["collapse rate"]
+  column 'k/n' at the end unless `collapse` is False (rows without validation flags)."""
+  head = [group_by, "runs"] + [h for _, h, _, _ in columns] + (["collapse rate"] if collapse else [])
   lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
   for g in groups:
     cells = [str(g[group_by]), str(g["runs"])]
     cells += [format_stat(g[m], scale=scale, digits=digits, extremes=extremes)
               for m, _, scale, digits in columns]
     rate = g["collapse_rate"]
-    cells.append("–" if math.isnan(rate) else
-                 f"{g['collapsed_runs']}/{g['flagged_runs']} ({rate:.0%})")
+    if collapse:
+      cells.append("–" if math.isnan(rate) else
+                   f"{g['collapsed_runs']}/{g['flagged_runs']} ({rate:.0%})")
     lines.append("| " + " | ".join(cells) + " |")
   return "\n".join(lines)
 
