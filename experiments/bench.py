@@ -40,6 +40,7 @@ Configurations (issue #7; every other setting is the paper's, configs/clevr.py):
   fast_scan10 fast_device with 10 steps per dispatch (lax.scan over steps; a call is a block,
               s/step = block time / 10)
   fast_stride2 fast with the encoder's half-size feature map (model.encoder_output_stride = 2)
+  fast_samples8 fast with 8 samples per ray (16 in fast; the pareto grid's samples8)
 The batches come from scenes of the embedded generator (two per batch, made in memory), so rays
 and source views look like training data; speed does not depend on the pixel values.
 """
@@ -226,7 +227,7 @@ def _platform_info() -> dict:
   return dict(platform=dev.platform, device_kind=getattr(dev, "device_kind", ""),
               num_devices=jax.device_count(), cpu_count=os.cpu_count(), jax=jax.__version__,
               host=platform.node(), allocator=runtime.describe(),
-              xla_flags=os.environ.get("XLA_FLAGS", ""),
+              xla_flags=os.environ.get("XLA_FLAGS", ""), **bench_common.cpu_info(),
               date=time.strftime("%Y-%m-%d %H:%M:%S"))
 
 

@@ -34,7 +34,33 @@ CONFIGS = {
     "fast_scan10": dict(variant="fast", overrides={**_FAST_DEVICE, "train.steps_per_dispatch": 10}),
     # fast with a half-size feature map (model.encoder_output_stride = 2; slotlifter_jax/encoder.py).
     "fast_stride2": dict(variant="fast", overrides={"model.encoder_output_stride": 2}),
+    # fast with 8 samples per ray instead of 16 (the pareto grid's `samples8`, experiments/pareto.py).
+    "fast_samples8": dict(variant="fast", overrides={"render.num_samples": 8}),
 }
+
+
+# Vector and matrix extensions that change XLA:CPU's kernels, so the same step can take 2.4× as
+# long on two hosts of one cloud (experiments/README.md, "Train-step benchmark").
+CPU_EXTENSIONS = ("avx2", "fma", "avx512f", "avx512_bf16", "avx512_vnni", "amx_tile", "amx_bf16")
+
+
+def cpu_info(cpuinfo: str | None = None) -> dict:
+  """The CPU's model name and which of CPU_EXTENSIONS it has, from /proc/cpuinfo's text (read
+  when `cpuinfo` is None; empty on systems without it)."""
+  if cpuinfo is None:
+    try:
+      with open("/proc/cpuinfo", encoding="utf-8") as f:
+        cpuinfo = f.read()
+    except OSError:
+      cpuinfo = ""
+  fields = {}
+  for line in cpuinfo.splitlines():
+    key, sep, value = line.partition(":")
+    if sep and key.strip() not in fields:  # the first processor's entry
+      fields[key.strip()] = value.strip()
+  flags = set(fields.get("flags", "").split())
+  return dict(cpu_model=fields.get("model name", ""),
+              cpu_extensions=[e for e in CPU_EXTENSIONS if e in flags])
 
 
 def config(name: str, dtype: str | None = None):
