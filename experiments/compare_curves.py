@@ -1,0 +1,119 @@
+"""Validation curves of several runs on one chart, e.g. an ablation against the full model.
+
+  python experiments/compare_curves.py --run=full=RUN_DIR --run=no_masking=METRICS.jsonl \
+      --keys=attn_fg_ari,fg_ari,nv_ari,psnr_novel --out=curves.png
+
+Each --run is LABEL=PATH, PATH a run folder (its metrics.jsonl) or a metrics .jsonl file such as
+the `*_val_metrics.jsonl` copies in experiments/results/. One panel per key against the step, one
+line per run; a run that logged no value of a key is left out of that panel. Prints, per key, a
+markdown table of the validations (a step per row, a run per column; – where a run has no
+validation at that step). plot_curves.py draws one run with its schedules and wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from slotlifter_jax import emergence  # noqa: E402  (numpy and absl only, no JAX)
+
+FORMATS = {"psnr_novel": "{:.2f}", "psnr_source": "{:.2f}", "active_slots": "{:.2f}"}
+
+
+def parse_args(argv=None):
+  p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  p.add_argument("--run", action="append", default=[], metavar="LABEL=PATH", required=True,
+                 help="a run folder or metrics .jsonl, with its label (repeat per run)")
+  p.add_argument("--keys", default=",".join(emergence.CURVE_KEYS),
+                 help="validation metrics to draw, comma-separated")
+  p.add_argument("--out", required=True, help="the PNG to write")
+  return p.parse_args(argv)
+
+
+def _runs(specs: list[str]) -> list[tuple[str, str]]:
+  runs = []
+  for spec in specs:
+    label, sep, path = spec.partition("=")
+    if not sep or not label or not path:
+      raise SystemExit(f"error: --run={spec}: expected LABEL=PATH")
+    if label in dict(runs):
+      raise SystemExit(f"error: --run={spec}: the label {label!r} is given twice")
+    if os.path.isdir(path):
+      path = os.path.join(path, emergence.METRICS_FILE)
+    if not os.path.isfile(path):
+      raise SystemExit(f"error: --run={spec}: {path} does not exist")
+    runs.append((label, path))
+  return runs
+
+
+def load(runs: list[tuple[str, str]], keys: list[str]) -> dict[str, dict]:
+  """{label: emergence.curves(...)} with the given keys; a one-line error for an unreadable file
+  or a key that no run logged."""
+  out = {}
+  for label, path in runs:
+    try:
+      records = emergence.load_records(path)
+    except (ValueError, OSError) as e:
+      raise SystemExit(f"error: {e}") from None
+    out[label] = emergence.curves(records, keys)
+    if not out[label]["step"].size:
+      raise SystemExit(f"error: {path}: no validation records")
+  for key in keys:
+    if all(all(math.isnan(v) for v in c[key]) for c in out.values()):
+      raise SystemExit(f"error: --keys: no run logged {key!r}")
+  return out
+
+
+def table(curves: dict[str, dict], key: str) -> list[str]:
+  labels = list(curves)
+  steps = sorted({int(s) for c in curves.values() for s in c["step"]})
+  fmt = FORMATS.get(key, "{:.3f}")
+  lines = [f"{emergence.label(key)}", "", "| step | " + " | ".join(labels) + " |",
+           "|---" * (len(labels) + 1) + "|"]
+  for step in steps:
+    cells = []
+    for label in labels:
+      c = curves[label]
+      where = [i for i, s in enumerate(c["step"]) if int(s) == step]
+      value = c[key][where[0]] if where else math.nan
+      cells.append("–" if math.isnan(value) else fmt.format(value))
+    lines.append(f"| {step} | " + " | ".join(cells) + " |")
+  return lines
+
+
+def plot(curves: dict[str, dict], keys: list[str], out: str) -> None:
+  fig, axes = plt.subplots(1, len(keys), figsize=(3.6 * len(keys), 3.2), squeeze=False)
+  for ax, key in zip(axes[0], keys):
+    for label, c in curves.items():
+      if not all(math.isnan(v) for v in c[key]):
+        ax.plot(c["step"], c[key], "o-", ms=2.5, lw=1, label=label)
+    ax.set_title(emergence.label(key), fontsize=9)
+    ax.set_xlabel("step")
+    ax.legend(fontsize=7)
+  fig.tight_layout()
+  fig.savefig(out, dpi=80)
+  plt.close(fig)
+
+
+def main(argv=None) -> None:
+  args = parse_args(argv)
+  keys = [k for k in args.keys.split(",") if k]
+  if not keys:
+    raise SystemExit("error: --keys: no metric named")
+  curves = load(_runs(args.run), keys)
+  for key in keys:
+    print("\n".join(table(curves, key)), end="\n\n")
+  plot(curves, keys, args.out)
+  print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+  main()

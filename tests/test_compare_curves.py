@@ -1,0 +1,72 @@
+"""experiments/compare_curves.py through its command line: the tables it prints and its errors."""
+
+import json
+import os
+import subprocess
+import sys
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCRIPT = os.path.join(REPO, "experiments", "compare_curves.py")
+
+
+def _write(path, records):
+  with open(path, "w") as f:
+    for r in records:
+      f.write(json.dumps(r) + "\n")
+
+
+def _run(*args):
+  return subprocess.run([sys.executable, SCRIPT, *args], capture_output=True, text=True, cwd=REPO)
+
+
+def test_tables_list_each_runs_validations_by_step(tmp_path):
+  full = tmp_path / "full.jsonl"
+  _write(full, [
+      {"step": 50, "kind": "train", "time": 0.0, "loss": 0.1},
+      {"step": 2000, "kind": "val", "time": 60.0, "fg_ari": 0.25, "psnr_novel": 19.5},
+      {"step": 4000, "kind": "val", "time": 120.0, "fg_ari": 0.5, "psnr_novel": 20.25},
+  ])
+  run_dir = tmp_path / "ablation"
+  run_dir.mkdir()
+  _write(run_dir / "metrics.jsonl", [
+      {"step": 2000, "kind": "val", "time": 10.0, "fg_ari": 0.125, "psnr_novel": 18.0},
+      # a resumed run validated step 2000 again: the later record is the one kept
+      {"step": 2000, "kind": "val", "time": 20.0, "fg_ari": 0.0625, "psnr_novel": 18.5},
+      {"step": 6000, "kind": "val", "time": 30.0, "fg_ari": 0.75},
+  ])
+  out = tmp_path / "c.png"
+  r = _run(f"--run=full={full}", f"--run=no_masking={run_dir}", "--keys=fg_ari,psnr_novel",
+           f"--out={out}")
+  assert r.returncode == 0, r.stderr
+  assert out.stat().st_size > 0
+  text = r.stdout
+  assert "| step | full | no_masking |" in text
+  fg = text.split("FG-ARI")[1].split("novel-view PSNR")[0]
+  assert "| 2000 | 0.250 | 0.062 |" in fg  # 0.0625 to three decimals
+  assert "| 4000 | 0.500 | – |" in fg
+  assert "| 6000 | – | 0.750 |" in fg
+  psnr = text.split("novel-view PSNR")[1]
+  assert "| 2000 | 19.50 | 18.50 |" in psnr
+  assert "| 6000 | – | – |" in psnr  # no PSNR at step 6000 in either run
+
+
+def test_bad_input_is_a_one_line_error_naming_what_is_wrong(tmp_path):
+  good = tmp_path / "g.jsonl"
+  _write(good, [{"step": 2000, "kind": "val", "time": 1.0, "fg_ari": 0.5}])
+  out = tmp_path / "c.png"
+  cases = [
+      ([f"--run={good}", f"--out={out}"], "expected LABEL=PATH"),
+      ([f"--run=a={tmp_path / 'missing.jsonl'}", f"--out={out}"], "missing.jsonl does not exist"),
+      ([f"--run=a={good}", f"--run=a={good}", f"--out={out}"], "'a' is given twice"),
+      ([f"--run=a={good}", "--keys=nv_ari", f"--out={out}"], "no run logged 'nv_ari'"),
+  ]
+  for args, message in cases:
+    r = _run(*args)
+    assert r.returncode != 0
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], r.stderr
+  assert not out.exists()
+  bad = tmp_path / "bad.jsonl"
+  bad.write_text('{"step": 1, "kind": "val"}\nnot json\n{"step": 2, "kind": "val"}\n')
+  r = _run(f"--run=a={bad}", f"--out={out}")
+  assert r.returncode != 0 and "bad.jsonl line 2" in r.stderr.strip().splitlines()[-1]
