@@ -97,9 +97,12 @@ def plot(curves: dict[str, dict], keys: list[str], out: str) -> None:
         ax.plot(c["step"], c[key], "o-", ms=2.5, lw=1, label=label)
     ax.set_title(emergence.label(key), fontsize=9)
     ax.set_xlabel("step")
-    ax.legend(fontsize=7)
+  # One legend beside the panels: inside them it hides the curves' ends.
+  handles = {h.get_label(): h for ax in axes[0] for h in ax.get_legend_handles_labels()[0]}
+  fig.legend(handles.values(), handles.keys(), loc="center left", bbox_to_anchor=(1.0, 0.5),
+             fontsize=7, frameon=False)
   fig.tight_layout()
-  fig.savefig(out, dpi=80)
+  fig.savefig(out, dpi=80, bbox_inches="tight")
   plt.close(fig)
 
 
