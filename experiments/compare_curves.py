@@ -54,6 +54,10 @@ def _runs(specs: list[str]) -> list[tuple[str, str]]:
   return runs
 
 
+def _logged(curve: dict, key: str) -> bool:
+  return not all(math.isnan(v) for v in curve[key])
+
+
 def load(runs: list[tuple[str, str]], keys: list[str]) -> dict[str, dict]:
   """{label: emergence.curves(...)} with the given keys; a one-line error for an unreadable file
   or a key that no run logged."""
@@ -67,7 +71,7 @@ def load(runs: list[tuple[str, str]], keys: list[str]) -> dict[str, dict]:
     if not out[label]["step"].size:
       raise SystemExit(f"error: {path}: no validation records")
   for key in keys:
-    if all(all(math.isnan(v) for v in c[key]) for c in out.values()):
+    if not any(_logged(c, key) for c in out.values()):
       raise SystemExit(f"error: --keys: no run logged {key!r}")
   return out
 
@@ -76,15 +80,12 @@ def table(curves: dict[str, dict], key: str) -> list[str]:
   labels = list(curves)
   steps = sorted({int(s) for c in curves.values() for s in c["step"]})
   fmt = FORMATS.get(key, "{:.3f}")
+  by_step = {label: dict(zip(c["step"].tolist(), c[key].tolist())) for label, c in curves.items()}
   lines = [f"{emergence.label(key)}", "", "| step | " + " | ".join(labels) + " |",
            "|---" * (len(labels) + 1) + "|"]
   for step in steps:
-    cells = []
-    for label in labels:
-      c = curves[label]
-      where = [i for i, s in enumerate(c["step"]) if int(s) == step]
-      value = c[key][where[0]] if where else math.nan
-      cells.append("–" if math.isnan(value) else fmt.format(value))
+    values = [by_step[label].get(step, math.nan) for label in labels]
+    cells = ["–" if math.isnan(v) else fmt.format(v) for v in values]
     lines.append(f"| {step} | " + " | ".join(cells) + " |")
   return lines
 
@@ -93,7 +94,7 @@ def plot(curves: dict[str, dict], keys: list[str], out: str) -> None:
   fig, axes = plt.subplots(1, len(keys), figsize=(3.6 * len(keys), 3.2), squeeze=False)
   for ax, key in zip(axes[0], keys):
     for label, c in curves.items():
-      if not all(math.isnan(v) for v in c[key]):
+      if _logged(c, key):
         ax.plot(c["step"], c[key], "o-", ms=2.5, lw=1, label=label)
     ax.set_title(emergence.label(key), fontsize=9)
     ax.set_xlabel("step")
