@@ -238,7 +238,7 @@ def abstract_state(model, config, scene: Scene) -> step_lib.TrainState:
   return step_lib.state_shapes(model, config, step_lib.init_batch(scene), sharding=device)
 
 
-def _choose_checkpoint(manager: Checkpoints, checkpoint: str) -> tuple[str, int]:
+def choose_checkpoint(manager: Checkpoints, checkpoint: str) -> tuple[str, int]:
   """('best' | 'latest', step) for --checkpoint = '' (best if any, else latest) | best | latest |
   <step>."""
   latest, best = manager.latest.all_steps(), manager.best.all_steps()
@@ -265,6 +265,33 @@ def _choose_checkpoint(manager: Checkpoints, checkpoint: str) -> tuple[str, int]
                        f"{sorted(latest)}, best {sorted(best)}")
 
 
+def read_saved_state(workdir: str, checkpoint: str = "latest") -> tuple[dict, str]:
+  """(the train state of the run's checkpoint `checkpoint` as saved: a nested dict of arrays on
+  the first device; its step directory), `checkpoint` as in `choose_checkpoint`.
+
+  Shapes and dtypes come from the checkpoint's own metadata, so no config, model or data is
+  needed: experiments/compare_checkpoints.py compares two runs' states with it."""
+  root = os.path.join(os.path.abspath(workdir), "checkpoints")  # orbax refuses relative paths
+  if not os.path.isdir(root):
+    raise FileNotFoundError(f"{root}: no checkpoints; train this run first (--mode=train)")
+  manager = Checkpoints(workdir)
+  try:
+    which, step = choose_checkpoint(manager, checkpoint)
+  finally:
+    manager.close()
+  step_dir = os.path.join(root, which, str(step))
+  item = epath.Path(step_dir) / "default"
+  device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+  handler = ocp.StandardCheckpointHandler()
+  try:
+    abstract = jax.tree.map(lambda m: jax.ShapeDtypeStruct(m.shape, m.dtype, sharding=device),
+                            handler.metadata(item), is_leaf=lambda x: hasattr(x, "shape"))
+    state = handler.restore(item, args=ocp.args.StandardRestore(abstract))
+  finally:
+    handler.close()
+  return state, step_dir
+
+
 def _parameter_differences(abstract_params, step_dir: str, *, limit: int = 8) -> list[str]:
   """'path: checkpoint shape, model shape' for every parameter whose shape differs, read from the
   checkpoint's metadata (nothing is restored)."""
@@ -285,7 +312,7 @@ def _parameter_differences(abstract_params, step_dir: str, *, limit: int = 8) ->
 def restore_params(model, config, workdir: str, *, scene: Scene, checkpoint: str = "",
                    params: str = "average") -> tuple[dict, str, int, str]:
   """(params, which params, step, step directory) of the run's checkpoint `checkpoint` (see
-  `_choose_checkpoint`); `params` chooses between a run's average of the parameters and its
+  `choose_checkpoint`); `params` chooses between a run's average of the parameters and its
   trained ones, and "which params" says which they are (`averaging.chosen_params`).
 
   Raises CheckpointMismatchError naming the parameters whose shapes differ when the checkpoint
@@ -297,7 +324,7 @@ def restore_params(model, config, workdir: str, *, scene: Scene, checkpoint: str
     raise FileNotFoundError(f"{root}: no checkpoints; train this run first (--mode=train)")
   manager = Checkpoints(workdir)
   try:
-    which, step = _choose_checkpoint(manager, checkpoint)
+    which, step = choose_checkpoint(manager, checkpoint)
     step_dir = os.path.join(root, which, str(step))
     abstract = abstract_state(model, config, scene)
     diffs = _parameter_differences(abstract.params, step_dir)
