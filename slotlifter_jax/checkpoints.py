@@ -265,16 +265,22 @@ def choose_checkpoint(manager: Checkpoints, checkpoint: str) -> tuple[str, int]:
                        f"{sorted(latest)}, best {sorted(best)}")
 
 
+def _open_trained(workdir: str) -> tuple[str, Checkpoints]:
+  """(the checkpoints folder, its managers) of a trained run; FileNotFoundError, and nothing
+  created, when the run has no checkpoints folder."""
+  root = os.path.join(os.path.abspath(workdir), "checkpoints")  # orbax refuses relative paths
+  if not os.path.isdir(root):
+    raise FileNotFoundError(f"{root}: no checkpoints; train this run first (--mode=train)")
+  return root, Checkpoints(workdir)
+
+
 def read_saved_state(workdir: str, checkpoint: str = "latest") -> tuple[dict, str]:
   """(the train state of the run's checkpoint `checkpoint` as saved: a nested dict of arrays on
   the first device; its step directory), `checkpoint` as in `choose_checkpoint`.
 
   Shapes and dtypes come from the checkpoint's own metadata, so no config, model or data is
   needed: experiments/compare_checkpoints.py compares two runs' states with it."""
-  root = os.path.join(os.path.abspath(workdir), "checkpoints")  # orbax refuses relative paths
-  if not os.path.isdir(root):
-    raise FileNotFoundError(f"{root}: no checkpoints; train this run first (--mode=train)")
-  manager = Checkpoints(workdir)
+  root, manager = _open_trained(workdir)
   try:
     which, step = choose_checkpoint(manager, checkpoint)
   finally:
@@ -319,10 +325,7 @@ def restore_params(model, config, workdir: str, *, scene: Scene, checkpoint: str
   does not fit the model built from `config`. The shapes are compared on the checkpoint's
   metadata first, so a mismatch never starts (and abandons) orbax's array reads.
   """
-  root = os.path.join(os.path.abspath(workdir), "checkpoints")  # orbax refuses relative paths
-  if not os.path.isdir(root):
-    raise FileNotFoundError(f"{root}: no checkpoints; train this run first (--mode=train)")
-  manager = Checkpoints(workdir)
+  root, manager = _open_trained(workdir)
   try:
     which, step = choose_checkpoint(manager, checkpoint)
     step_dir = os.path.join(root, which, str(step))
