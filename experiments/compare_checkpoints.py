@@ -69,9 +69,6 @@ def main(argv: list[str] | None = None) -> int:
                       help="latest (default), best, or a step number")
   parser.add_argument("--show", type=int, default=5, help="leaves listed when some differ")
   args = parser.parse_args(argv)
-  if not args.checkpoint or not (args.checkpoint in ("latest", "best") or args.checkpoint.isdigit()):
-    print(f"--checkpoint={args.checkpoint!r}: use latest, best or a step number", file=sys.stderr)
-    return 2
   from slotlifter_jax import checkpoints as ckpt_lib
   try:
     (a, dir_a), (b, dir_b) = (ckpt_lib.read_saved_state(run, args.checkpoint)

@@ -238,7 +238,7 @@ def abstract_state(model, config, scene: Scene) -> step_lib.TrainState:
   return step_lib.state_shapes(model, config, step_lib.init_batch(scene), sharding=device)
 
 
-def choose_checkpoint(manager: Checkpoints, checkpoint: str) -> tuple[str, int]:
+def _choose_checkpoint(manager: Checkpoints, checkpoint: str) -> tuple[str, int]:
   """('best' | 'latest', step) for --checkpoint = '' (best if any, else latest) | best | latest |
   <step>."""
   latest, best = manager.latest.all_steps(), manager.best.all_steps()
@@ -276,13 +276,13 @@ def _open_trained(workdir: str) -> tuple[str, Checkpoints]:
 
 def read_saved_state(workdir: str, checkpoint: str = "latest") -> tuple[dict, str]:
   """(the train state of the run's checkpoint `checkpoint` as saved: a nested dict of arrays on
-  the first device; its step directory), `checkpoint` as in `choose_checkpoint`.
+  the first device; its step directory), `checkpoint` as in `_choose_checkpoint`.
 
   Shapes and dtypes come from the checkpoint's own metadata, so no config, model or data is
   needed: experiments/compare_checkpoints.py compares two runs' states with it."""
   root, manager = _open_trained(workdir)
   try:
-    which, step = choose_checkpoint(manager, checkpoint)
+    which, step = _choose_checkpoint(manager, checkpoint)
   finally:
     manager.close()
   step_dir = os.path.join(root, which, str(step))
@@ -318,7 +318,7 @@ def _parameter_differences(abstract_params, step_dir: str, *, limit: int = 8) ->
 def restore_params(model, config, workdir: str, *, scene: Scene, checkpoint: str = "",
                    params: str = "average") -> tuple[dict, str, int, str]:
   """(params, which params, step, step directory) of the run's checkpoint `checkpoint` (see
-  `choose_checkpoint`); `params` chooses between a run's average of the parameters and its
+  `_choose_checkpoint`); `params` chooses between a run's average of the parameters and its
   trained ones, and "which params" says which they are (`averaging.chosen_params`).
 
   Raises CheckpointMismatchError naming the parameters whose shapes differ when the checkpoint
@@ -327,7 +327,7 @@ def restore_params(model, config, workdir: str, *, scene: Scene, checkpoint: str
   """
   root, manager = _open_trained(workdir)
   try:
-    which, step = choose_checkpoint(manager, checkpoint)
+    which, step = _choose_checkpoint(manager, checkpoint)
     step_dir = os.path.join(root, which, str(step))
     abstract = abstract_state(model, config, scene)
     diffs = _parameter_differences(abstract.params, step_dir)
