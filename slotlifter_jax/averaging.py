@@ -24,7 +24,7 @@ restores as before; turning it on or off for an existing run changes the state's
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Optional
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -39,17 +39,6 @@ class ParamEmaState(NamedTuple):
 def enabled(train_config) -> bool:
   """Whether the run keeps the average; configs saved before the field existed read as off."""
   return float(train_config.get("ema_decay", 0.0)) > 0.0
-
-
-def config_problem(train_config) -> Optional[str]:
-  """What is wrong with the average's settings, in one line naming the field; None if nothing."""
-  decay = float(train_config.get("ema_decay", 0.0))
-  if not 0.0 <= decay < 1.0:  # also NaN
-    return f"train.ema_decay is {decay}; use 0 (off) or a value in (0, 1)"
-  start = int(train_config.get("ema_start_step", 0))
-  if start < 0:
-    return f"train.ema_start_step is {start}; must be ≥ 0"
-  return None
 
 
 def copied_updates(start_step: int) -> int:

@@ -45,6 +45,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from slotlifter_jax import config_checks
+
 # PyTorch's InstanceNorm2d default, kept so the normalisation matches the official model.
 INSTANCE_NORM_EPS = 1e-5
 
@@ -157,16 +159,6 @@ class ConvNormElu(nn.Module):
     return nn.elu(instance_norm("norm", self.dtype)(x))
 
 
-OUTPUT_STRIDES = (4, 2)
-
-
-def check_output_stride(stride) -> None:
-  """ValueError naming `model.encoder_output_stride` unless it is one of OUTPUT_STRIDES."""
-  if stride not in OUTPUT_STRIDES:
-    raise ValueError(f"model.encoder_output_stride is {stride!r}; it must be one of "
-                     f"{OUTPUT_STRIDES} (4 is the paper's)")
-
-
 class ResUNet(nn.Module):
   """[N, H, W, C_in] → [N, ceil(H/s), ceil(W/s), out_dim], s = output_stride (module docstring)."""
   out_dim: int = 64
@@ -181,7 +173,7 @@ class ResUNet(nn.Module):
     if len(self.widths) != 3 or len(self.blocks) != 3:
       raise ValueError(f"ResUNet needs three layers, got widths={self.widths} "
                        f"blocks={self.blocks}")
-    check_output_stride(self.output_stride)
+    config_checks.check_output_stride(self.output_stride)
     x = ReflectConv(self.stem_width, 7, 2, use_bias=False, dtype=self.dtype,
                     name="stem_conv")(x)
     x = nn.relu(instance_norm("stem_norm", self.dtype)(x))  # [N, H/2, W/2, stem]

@@ -39,6 +39,7 @@ import numpy as np
 from absl import logging
 from tqdm import tqdm
 
+from slotlifter_jax import config_checks
 from slotlifter_jax import averaging
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import metrics
@@ -310,7 +311,7 @@ def load_run(config: ml_collections.ConfigDict, workdir: str, *, split: str,
                             f"training run directory (train it first with --mode=train)")
   ckpt_lib.check_compatible(config, saved, workdir)
   try:  # render settings are read when the first scene renders: fail before any work instead
-    views_lib.check_supersample(config.render)
+    config_checks.check_supersample(config.render)
     if config.render.get("adaptive", False):
       adaptive.AdaptiveSettings.from_config(config)
   except ValueError as e:

@@ -15,6 +15,7 @@ import sys
 from absl import app, flags, logging
 from ml_collections import config_flags
 
+from slotlifter_jax import config_checks
 from slotlifter_jax import runtime
 
 config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/clevr.py:quick.",
@@ -64,14 +65,21 @@ def main(argv):
     FLAGS.config.keys()
   except Exception as e:  # noqa: BLE001
     sys.exit(f"error: --config={FLAGS['config'].config_filename}: cannot be loaded ({_one_line(e)})")
+  if not FLAGS.distributed and any(
+      FLAGS[f].present for f in ("coordinator_address", "num_processes", "process_id")):
+    sys.exit("error: --coordinator_address, --num_processes and --process_id need --distributed")
+  # Before JAX starts (seconds on a CPU) and before the processes of a --distributed launch
+  # connect: a bad field is reported at once, and by every process alike.
+  try:
+    config_checks.check_config(FLAGS.config)
+  except config_checks.ConfigError as e:
+    sys.exit(f"error (ConfigError): {e}")
   import jax
   if FLAGS.distributed:
     from slotlifter_jax import multihost
     multihost.initialize(FLAGS.coordinator_address, FLAGS.num_processes, FLAGS.process_id)
     if jax.process_index() != 0:  # process 0 logs the progress; the others only their warnings
       logging.set_verbosity(logging.WARNING)
-  elif any(FLAGS[f].present for f in ("coordinator_address", "num_processes", "process_id")):
-    sys.exit("error: --coordinator_address, --num_processes and --process_id need --distributed")
   logging.info("JAX devices: %s (process %d of %d); %s", jax.devices(), jax.process_index(),
                jax.process_count(), runtime.describe())
   warning = runtime.slow_allocator_warning()

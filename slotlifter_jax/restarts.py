@@ -32,17 +32,6 @@ ATTEMPT_FILES = ("checkpoints", "metrics.jsonl", "tb", "val", "config.json", "em
 SEED_STRIDE = 1000
 
 
-def config_problem(train_config) -> Optional[str]:
-  """What is wrong with the restart fields, in one line naming the field, or None."""
-  check = int(train_config.get("restart_check_step", 0))
-  if check < 0 or (check and check % int(train_config.eval_every)):
-    return (f"train.restart_check_step={check} must be 0 (no check) or a multiple of "
-            f"train.eval_every={train_config.eval_every}, a step that validates")
-  if int(train_config.get("restarts", 0)) < 0:
-    return f"train.restarts={train_config.restarts} must be ≥ 0"
-  return None
-
-
 def reason(train_config, step: int, val: dict) -> Optional[str]:
   """Why the validation `val` of step `step` calls for a new seed, or None."""
   if val.get("collapsed") == 1.0 and step >= collapse.settled_step(train_config):

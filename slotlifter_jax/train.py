@@ -25,7 +25,8 @@ from tqdm import tqdm
 from slotlifter_jax import averaging
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import collapse
-from slotlifter_jax import encoder as encoder_lib
+from slotlifter_jax import config_checks
+from slotlifter_jax.config_checks import ConfigError
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import multihost
 from slotlifter_jax import restarts
@@ -36,15 +37,10 @@ from slotlifter_jax.data import device_sampler
 from slotlifter_jax.data import embedded
 from slotlifter_jax.data import pipeline
 from slotlifter_jax.data import registry
-from slotlifter_jax.rendering import views as views_lib
 
 
 class NonFiniteError(RuntimeError):
   """Too many non-finite steps in a row."""
-
-
-class ConfigError(ValueError):
-  """A config that cannot train: the message names the field and what to do."""
 
 
 class Interrupted(Exception):
@@ -113,84 +109,12 @@ class _NoWriter:
     pass
 
 
-SAMPLERS = ("host", "device")
-
-
-def _check_masking(train_config) -> None:
-  """0 ≤ mask_min ≤ mask_max ≤ 1, or keep(t) leaves [0, 1]; the floor's release step and its
-  length ≥ 0."""
-  low, high = float(train_config.get("mask_min", 0.0)), float(train_config.mask_max)
-  if not 0.0 <= low <= high <= 1.0:
-    raise ConfigError(f"train.mask_min={low} and train.mask_max={high} must satisfy "
-                      f"0 ≤ mask_min ≤ mask_max ≤ 1")
-  if int(train_config.get("mask_min_steps", 0)) < 0:
-    raise ConfigError(f"train.mask_min_steps={train_config.mask_min_steps} must be ≥ 0 "
-                      f"(0 holds the floor for good)")
-  if int(train_config.get("mask_min_release_steps", 0)) < 0:
-    raise ConfigError(f"train.mask_min_release_steps={train_config.mask_min_release_steps} must "
-                      f"be ≥ 0 (0 releases the floor at once)")
-
-
-def _check_rates(train_config) -> None:
-  """The cooldown's length and final factor, and slot attention's rate scale."""
-  steps = int(train_config.get("lr_cooldown_steps", 0))
-  if not 0 <= steps <= int(train_config.num_steps):
-    raise ConfigError(f"train.lr_cooldown_steps={steps} must lie in [0, train.num_steps="
-                      f"{train_config.num_steps}]")
-  final = float(train_config.get("lr_cooldown_final", 0.1))
-  if not 0.0 <= final <= 1.0:
-    raise ConfigError(f"train.lr_cooldown_final={final} must lie in [0, 1]")
-  scale = float(train_config.get("slot_attention_lr_scale", 1.0))
-  if not scale >= 0.0:  # also NaN: a negative rate would climb the loss
-    raise ConfigError(f"train.slot_attention_lr_scale={scale} must be ≥ 0")
-
-
-def _check_selection(train_config) -> None:
-  select_by = train_config.get("select_by", "nv_ari")
-  if select_by not in validation.SELECT_BY:
-    raise ConfigError(f"train.select_by must be one of {validation.SELECT_BY}, "
-                      f"got {select_by!r}")
-
-
-def _check_restarts(train_config) -> None:
-  problem = restarts.config_problem(train_config)
-  if problem:
-    raise ConfigError(problem)
-
-
-def _check_averaging(train_config) -> None:
-  problem = averaging.config_problem(train_config)
-  if problem:
-    raise ConfigError(problem)
-
-
-def _check_sampler(config, train_scenes) -> bool:
-  """Validates data.sampler, data.curriculum and train.steps_per_dispatch; True for "device"."""
-  sampler = config.data.get("sampler", "host")
-  if sampler not in SAMPLERS:
-    raise ConfigError(f"data.sampler is {sampler!r}; use one of {SAMPLERS}")
-  block = int(config.train.get("steps_per_dispatch", 1))
-  curriculum = config.data.get("curriculum", ())
-  if sampler == "host":
-    if block != 1:
-      raise ConfigError(f"train.steps_per_dispatch={block} needs data.sampler=device (the host "
-                       f"sampler feeds one step per dispatch)")
-    if curriculum:
-      raise ConfigError("data.curriculum needs data.sampler=device")
+def _on_device(config, train_scenes) -> bool:
+  """True for data.sampler=device (config_checks has vetted its fields), after checking its
+  object-count curriculum against the training scenes."""
+  if config.data.get("sampler", "host") != "device":
     return False
-  for field, stages in (("data.scene_stages", config.data.get("scene_stages", ())),
-                        ("train.ray_stages", config.train.get("ray_stages", ()))):
-    if stages:
-      raise ConfigError(f"{field} needs data.sampler=host")
-  if config.data.ray_sampling != "uniform":
-    raise ConfigError(f"data.ray_sampling={config.data.ray_sampling!r} needs data.sampler=host")
-  if block < 1:
-    raise ConfigError(f"train.steps_per_dispatch is {block}; it must be ≥ 1")
-  for field in ("log_every", "eval_every", "checkpoint_every", "num_steps"):
-    if int(config.train[field]) % block:
-      raise ConfigError(f"train.{field}={config.train[field]} is not a multiple of "
-                       f"train.steps_per_dispatch={block}")
-  device_sampler.check_curriculum(curriculum, train_scenes)
+  device_sampler.check_curriculum(config.data.get("curriculum", ()), train_scenes)
   return True
 
 
@@ -255,16 +179,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   # Nothing is created until the config and the data are known to be good.
   if os.path.exists(workdir) and not os.path.isdir(workdir):
     raise FileExistsError(f"{workdir}: exists and is not a directory; choose another --workdir")
-  _check_masking(config.train)
-  _check_rates(config.train)
-  _check_selection(config.train)
-  _check_restarts(config.train)
-  _check_averaging(config.train)
-  try:
-    views_lib.check_supersample(config.render)  # validation renders with it
-    encoder_lib.check_output_stride(config.model.get("encoder_output_stride", 4))
-  except ValueError as e:
-    raise ConfigError(str(e)) from e
+  config_checks.check_config(config)
   saved = ckpt_lib.load_saved_config(workdir)
   ckpt_lib.check_compatible(config, saved, workdir)
   # After a restart the folder holds an attempt with another seed: resuming continues it exactly.
@@ -282,15 +197,10 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
   if config.train.batch_scenes % n_dev:
     raise ConfigError(f"train.batch_scenes={config.train.batch_scenes} must be a multiple of the "
                      f"{n_dev} devices")
-  if config.train.batch_scenes % config.train.grad_accum_chunks:
-    raise ConfigError(f"train.batch_scenes={config.train.batch_scenes} must be a multiple of "
-                     f"train.grad_accum_chunks={config.train.grad_accum_chunks}")
-  if config.train.rays_per_scene % config.train.ray_chunks:
-    raise ConfigError(f"train.rays_per_scene={config.train.rays_per_scene} must be a multiple of "
-                     f"train.ray_chunks={config.train.ray_chunks}")
   try:
-    ray_stages = pipeline.check_stages(config.train.get("ray_stages", ()), field="train.ray_stages",
-                                       upper=2**31 - 1, multiple_of=config.train.ray_chunks)
+    ray_stages = config_checks.check_stages(
+        config.train.get("ray_stages", ()), field="train.ray_stages", upper=2**31 - 1,
+        multiple_of=config.train.ray_chunks)
     sampler = pipeline.BatchSampler(
         train_scenes, num_source_views=config.data.num_source_views,
         batch_scenes=config.train.batch_scenes, rays_per_scene=config.train.rays_per_scene,
@@ -299,7 +209,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
         scene_stages=config.data.get("scene_stages", ()), ray_stages=ray_stages)
   except ValueError as e:
     raise ConfigError(str(e)) from e
-  on_device = _check_sampler(config, train_scenes)
+  on_device = _on_device(config, train_scenes)
   if multihost.is_primary():
     ckpt_lib.save_config(config, workdir, step=ckpt_lib.latest_step_on_disk(workdir))
   model = model_lib.build_model(config)

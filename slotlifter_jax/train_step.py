@@ -21,6 +21,7 @@ import optax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 
 from slotlifter_jax import averaging
+from slotlifter_jax import config_checks
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import schedules
 from slotlifter_jax.data import device_sampler
@@ -80,7 +81,7 @@ def make_optimizer(train_config) -> optax.GradientTransformation:
     groups["slot_attention"] = make(lambda t: schedules.slot_attention_lr(t, c))
   chain = [optax.clip_by_global_norm(c.grad_clip),
            optax.multi_transform(groups, lambda p: param_groups(p, split_slot_attention=split))]
-  problem = averaging.config_problem(c)
+  problem = config_checks.averaging_problem(c)
   if problem:
     raise ValueError(problem)
   if averaging.enabled(c):  # off, the state stays that of every earlier checkpoint

@@ -14,6 +14,7 @@ import os
 import numpy as np
 
 from slotlifter_jax import collapse
+from slotlifter_jax import config_checks
 from slotlifter_jax import evaluate
 from slotlifter_jax import schedules
 from slotlifter_jax import vis
@@ -41,9 +42,6 @@ def collapse_statistics(*, segmentation, rendered, target, foreground=None) -> d
       probe_pixel_entropy=mean(usage.pixel_entropy))
 
 
-SELECT_BY = ("nv_ari", "min_fg_nv", "psnr_novel")
-
-
 def selection_score(result: dict, select_by: str, *, has_masks: bool) -> float:
   """The number the best checkpoint maximises (docs/method.md §4; `train.select_by`).
 
@@ -52,8 +50,9 @@ def selection_score(result: dict, select_by: str, *, has_masks: bool) -> float:
   has no ARI, so it is always scored by novel-view PSNR. Not finite (no foreground in any view):
   −1, below any real score.
   """
-  if select_by not in SELECT_BY:
-    raise ValueError(f"train.select_by must be one of {SELECT_BY}, got {select_by!r}")
+  problem = config_checks.selection_problem({"select_by": select_by})
+  if problem:
+    raise ValueError(problem)
   if not has_masks or select_by == "psnr_novel":
     score = result.get("psnr_novel", np.nan)
   elif select_by == "min_fg_nv":

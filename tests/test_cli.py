@@ -121,6 +121,11 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
     assert os.path.isfile(tmp_path / workdir / "render" / "test" / f"scene_{int(i):04d}_panel.png")
 
 
+# The bad inputs that only the data or the run folder reveals, after JAX has started.
+FOUND_AFTER_JAX_STARTS = ("data.root does not exist", "exists and is not a directory",
+                          "data.frame must be one of", "data.scene_stages:")
+
+
 @pytest.mark.parametrize("args, message", [
     (["--config=configs/nonexistent.py"], "--config=configs/nonexistent.py: cannot be loaded"),
     (["--config=configs/clevr.py:smoke", "--config.train.base_lrr=1"], 'did you mean "base_lr"'),
@@ -161,8 +166,17 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
      "render.supersample is 0; it must be an integer ≥ 1"),
     (["--config=configs/clevr.py:smoke", "--config.model.encoder_output_stride=3"],
      "model.encoder_output_stride is 3; it must be one of (4, 2)"),
+    (["--config=configs/clevr.py:smoke", "--config.train.ray_chunks=3"],
+     "train.rays_per_scene=32 must be a multiple of train.ray_chunks=3"),
+    (["--config=configs/clevr.py:smoke", "--mode=eval", "--config.train.ema_decay=-0.1"],
+     "train.ema_decay is -0.1"),
+    (["--config=configs/clevr.py:smoke", "--distributed", "--num_processes=2", "--process_id=0",
+      "--coordinator_address=localhost:1", "--config.data.sampler=gpu"],
+     "data.sampler is 'gpu'; use one of ('host', 'device')"),
 ])
 def test_a_bad_command_line_gets_one_line_and_creates_nothing(tmp_path, args, message):
+  # Only what needs the data or the run folder waits for JAX to start; a bad flag or config field
+  # is reported before (slotlifter_jax/config_checks.py).
   shutil.copytree(os.path.join(REPO, "configs"), tmp_path / "configs")
   (tmp_path / "a_file").write_text("keep me")
   if not any(a.startswith("--workdir=") for a in args):
@@ -174,5 +188,7 @@ def test_a_bad_command_line_gets_one_line_and_creates_nothing(tmp_path, args, me
   errors = [l for l in lines if l.startswith("error")]
   assert len(errors) == 1 and message in errors[0], proc.stderr[-3000:]
   assert "Traceback" not in proc.stderr
+  if not any(m in message for m in FOUND_AFTER_JAX_STARTS):
+    assert "JAX devices" not in proc.stderr, proc.stderr[-3000:]
   assert not os.path.exists(tmp_path / "runs")
   assert (tmp_path / "a_file").read_text() == "keep me"

@@ -12,6 +12,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import data_fixtures as fx
+from slotlifter_jax import config_checks
 from slotlifter_jax.data import cameras
 from slotlifter_jax.data import pipeline
 from slotlifter_jax.data.types import DataError
@@ -376,4 +377,4 @@ def test_bad_stages_are_named():
     pipeline.BatchSampler(scenes, ray_stages=((5, 4 * H * W),), **kw)
   with pytest.raises(ValueError, match=r"train.ray_stages: 30 \(stage from step 2\) is not a "
                                        r"multiple of 4"):
-    pipeline.check_stages(((2, 30),), field="train.ray_stages", upper=100, multiple_of=4)
+    config_checks.check_stages(((2, 30),), field="train.ray_stages", upper=100, multiple_of=4)

@@ -8,6 +8,7 @@ import pytest
 
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import collapse
+from slotlifter_jax import config_checks
 from slotlifter_jax import restarts
 from slotlifter_jax import train
 from slotlifter_jax import validation
@@ -74,11 +75,11 @@ def test_restart_reasons_and_config_checks():
   assert restarts.reason(t, settled, dict(ok, collapsed=1.0)) == "collapsed"
   if settled > 0:
     assert restarts.reason(t, settled - 1, dict(ok, collapsed=1.0)) is None
-  assert restarts.config_problem(t) is None
+  assert config_checks.restarts_problem(t) is None
   t.restart_check_step = t.eval_every + 1
-  assert "train.restart_check_step" in restarts.config_problem(t)
+  assert "train.restart_check_step" in config_checks.restarts_problem(t)
   t.restart_check_step, t.restarts = 0, -1
-  assert "train.restarts=-1 must be ≥ 0" in restarts.config_problem(t)
+  assert "train.restarts=-1 must be ≥ 0" in config_checks.restarts_problem(t)
 
 
 @pytest.mark.parametrize("select_by, has_masks, expected", [

@@ -27,8 +27,8 @@ from experiments import study_common as sc  # noqa: E402
 from experiments import study_tables as st  # noqa: E402
 from slotlifter_jax import evaluate  # noqa: E402
 from slotlifter_jax import schedules  # noqa: E402
-from slotlifter_jax import restarts  # noqa: E402
 from slotlifter_jax import collapse  # noqa: E402
+from slotlifter_jax import config_checks  # noqa: E402
 from slotlifter_jax import train  # noqa: E402
 
 SMOKE = "configs/clevr.py:smoke"
@@ -401,7 +401,7 @@ def test_pareto_fast_grid_plans_one_axis_of_fast_at_its_own_budget(tmp_path, cap
   # even fall on fast's check step), and the config it trains must pass train's checks.
   assert fast.train.restarts > 0 and fast.train.restart_check_step % fast.train.eval_every == 0
   assert (base.train.restarts, base.train.restart_check_step) == (0, 0)
-  assert restarts.config_problem(base.train) is None
+  config_checks.check_config(base)
   # The grid's base is the fast ablation study's `full` run: one training serves both.
   assert sc.run_id(runs[0]) == sc.run_id(
       ablations.plan(config="configs/clevr.py:fast", num_steps=50_000, seeds=range(1),

@@ -31,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from slotlifter_jax import config_checks
 from slotlifter_jax import geometry
 from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
@@ -115,13 +116,7 @@ def curriculum_limit(step, stages: Sequence[Sequence[int]]):
 
 def check_curriculum(stages, scenes: Sequence[Scene]) -> tuple[tuple[int, int], ...]:
   """Validates data.curriculum against the training scenes; returns it as int pairs."""
-  out = []
-  for stage in stages:
-    if len(stage) != 2:
-      raise ValueError(f"data.curriculum: stage {stage!r} is not (start_step, max_objects)")
-    out.append((int(stage[0]), int(stage[1])))
-  if [s for s, _ in out] != sorted(s for s, _ in out):
-    raise ValueError(f"data.curriculum: start steps {[s for s, _ in out]} are not increasing")
+  out = config_checks.curriculum_stages(stages)
   counts = [scene_object_count(s) for s in scenes]
   if out and min(counts) < 0:
     raise DataError("data.curriculum needs object counts, but the training scenes have neither "

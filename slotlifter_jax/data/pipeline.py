@@ -55,6 +55,7 @@ from typing import Iterable, Iterator, Optional, Sequence
 
 import numpy as np
 
+from slotlifter_jax import config_checks
 from slotlifter_jax import geometry
 from slotlifter_jax.data import cameras
 from slotlifter_jax.data.types import DataError
@@ -106,27 +107,6 @@ def stage_value(step: int, stages, default: int) -> int:
     if step >= start:
       value = v
   return int(value)
-
-
-def check_stages(stages, *, field: str, upper: int, multiple_of: int = 1
-                 ) -> tuple[tuple[int, int], ...]:
-  """Validates stages ((start_step, value), …) for config field `field`: start steps ≥ 0 and
-  increasing, each value in [1, upper] and a multiple of `multiple_of`. Returns int pairs."""
-  out = []
-  for stage in stages:
-    if len(stage) != 2:
-      raise ValueError(f"{field}: stage {tuple(stage)!r} is not (start_step, value)")
-    out.append((int(stage[0]), int(stage[1])))
-  starts = [s for s, _ in out]
-  if any(s < 0 for s in starts) or starts != sorted(set(starts)):
-    raise ValueError(f"{field}: start steps {starts} must be ≥ 0 and strictly increasing")
-  for start, value in out:
-    if not 1 <= value <= upper:
-      raise ValueError(f"{field}: {value} (stage from step {start}) must lie in [1, {upper}]")
-    if value % multiple_of:
-      raise ValueError(f"{field}: {value} (stage from step {start}) is not a multiple of "
-                       f"{multiple_of}")
-  return tuple(out)
 
 
 BATCH_KEYS = ("source_images", "source_cam_to_world", "source_intrinsics", "ray_origins",
@@ -211,9 +191,9 @@ class BatchSampler:
     self.novel_ray_prob = float(novel_ray_prob)
     self.seed = int(seed)
     self._sources: dict[tuple[int, int], tuple[int, ...]] = {}  # (scene, target) → sources
-    self.scene_stages = check_stages(scene_stages, field="data.scene_stages",
+    self.scene_stages = config_checks.check_stages(scene_stages, field="data.scene_stages",
                                      upper=len(self.scenes))
-    self.ray_stages = check_stages(ray_stages, field="train.ray_stages", upper=2**31 - 1)
+    self.ray_stages = config_checks.check_stages(ray_stages, field="train.ray_stages", upper=2**31 - 1)
     self._check()
 
   def num_scenes_at(self, step: int) -> int:

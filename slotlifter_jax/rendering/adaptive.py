@@ -54,6 +54,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from slotlifter_jax import config_checks
 from slotlifter_jax import geometry
 from slotlifter_jax.data.types import Scene
 from slotlifter_jax.rendering import views as views_lib
@@ -258,7 +259,7 @@ class AdaptiveSettings:
     if tuple(r.get("z_bounds", ())):
       raise ValueError("render.adaptive: render.z_bounds gives every ray its own sample interval, "
                        "the adaptive renderer shares one grid; set render.adaptive=False")
-    if views_lib.check_supersample(r) > 1:
+    if config_checks.check_supersample(r) > 1:
       raise ValueError(f"render.adaptive: render.supersample={r.supersample} is not supported by "
                        "the adaptive renderer (one ray per pixel); set one of them back")
     settings = cls(stride=int(r.adaptive_stride), window=int(r.adaptive_window),

@@ -50,6 +50,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 from tqdm import tqdm
 
+from slotlifter_jax import config_checks
 from slotlifter_jax import evaluate
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import multihost
@@ -148,7 +149,7 @@ class SlotRenderer:
   def __init__(self, model: model_lib.SlotLifter, config: ml_collections.ConfigDict):
     self.signed = config.model.colour_range == "signed"
     self.chunk = int(config.render.chunk)
-    self.supersample = views_lib.check_supersample(config.render)
+    self.supersample = config_checks.check_supersample(config.render)
     self.adaptive = None
     if config.render.get("adaptive", False):
       if int(config.render.num_fine_samples) > 0:

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from slotlifter_jax import config_checks
 from slotlifter_jax import geometry
 from slotlifter_jax import metrics
 from slotlifter_jax.data.types import Scene
@@ -52,14 +53,6 @@ def make_encode(model):
   """encode(params, sources) -> Encoded, jitted, evaluation mode (no slot noise)."""
   return jax.jit(lambda params, sources: model.apply(
       {"params": params}, **sources, slot_noise_sigma=0.0, train=False, method=model.encode))
-
-
-def check_supersample(render) -> int:
-  """`render.supersample` as an int; ValueError naming the field unless it is an integer ≥ 1."""
-  value = render.get("supersample", 1)
-  if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-    raise ValueError(f"render.supersample is {value!r}; it must be an integer ≥ 1")
-  return value
 
 
 def render_cameras(render_chunk, *, cam_to_world, intrinsics, height: int, width: int,
@@ -105,7 +98,7 @@ class SceneRenderer:
     self.model = model
     self.signed = config.model.colour_range == "signed"
     self.chunk = int(config.render.chunk)
-    self.supersample = check_supersample(config.render)
+    self.supersample = config_checks.check_supersample(config.render)
     self.num_source_views = int(config.data.num_source_views)
 
     @jax.jit
