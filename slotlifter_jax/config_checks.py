@@ -20,6 +20,11 @@ SELECT_BY = ("nv_ari", "min_fg_nv", "psnr_novel")
 # encoder.ResUNet: 4 is the paper's (features at a quarter of the input); 2 joins the stem.
 OUTPUT_STRIDES = (4, 2)
 SAMPLERS = ("host", "device")
+# data/registry.py's readers, and the frames it can put the poses in: "world", as stored (the
+# paper's), or "source_azimuth", every scene turned about the vertical axis so its (first) source
+# view sits at azimuth 0 (`registry.in_source_azimuth_frame`).
+DATA_FORMATS = ("uorf", "uocf", "dtu", "scannet")
+FRAMES = ("world", "source_azimuth")
 
 
 class ConfigError(ValueError):
@@ -31,7 +36,7 @@ def check_config(config) -> None:
   train = config.train
   for problem in (masking_problem(train), rates_problem(train), selection_problem(train),
                   restarts_problem(train), averaging_problem(train), batch_problem(train),
-                  sampler_problem(config)):
+                  sampler_problem(config), data_problem(config.data)):
     if problem:
       raise ConfigError(problem)
   try:
@@ -42,6 +47,16 @@ def check_config(config) -> None:
     curriculum_stages(config.data.get("curriculum", ()))
   except ValueError as e:
     raise ConfigError(str(e)) from e
+
+
+def data_problem(data) -> Optional[str]:
+  """data.format has a reader and data.frame is one the readers can put the poses in."""
+  if data.format not in DATA_FORMATS:
+    return f"data.format must be one of {DATA_FORMATS}, got {data.format!r}"
+  frame = data.get("frame", "world")
+  if frame not in FRAMES:
+    return f"data.frame must be one of {FRAMES}, got {frame!r}"
+  return None
 
 
 def masking_problem(train) -> Optional[str]:

@@ -123,7 +123,7 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
 
 # The bad inputs that only the data or the run folder reveals, after JAX has started.
 FOUND_AFTER_JAX_STARTS = ("data.root does not exist", "exists and is not a directory",
-                          "data.frame must be one of", "data.scene_stages:")
+                          "data.scene_stages:")
 
 
 @pytest.mark.parametrize("args, message", [

@@ -52,6 +52,7 @@ def smoke(**overrides):
     dict(train__ema_decay=0.0), dict(train__ema_decay=0.999, train__ema_start_step=0),
     dict(render__supersample=3),
     dict(model__encoder_output_stride=2),
+    dict(data__frame="source_azimuth"), dict(data__format="dtu"),
     dict(train__ray_stages=((0, 32), (4, 64))),
     dict(data__sampler="device", train__steps_per_dispatch=1, data__curriculum=((0, 1), (3, 3))),
 ])
@@ -76,6 +77,10 @@ def test_settings_on_the_allowed_side_pass(overrides):
     (dict(train__grad_accum_chunks=3), "train.batch_scenes=2 must be a multiple of "
                                        "train.grad_accum_chunks=3"),
     (dict(train__ray_chunks=3), "train.rays_per_scene=32 must be a multiple of train.ray_chunks=3"),
+    (dict(data__format="nerf"), "data.format must be one of ('uorf', 'uocf', 'dtu', 'scannet'), "
+                                "got 'nerf'"),
+    (dict(data__frame="camera"), "data.frame must be one of ('world', 'source_azimuth'), got "
+                                 "'camera'"),
     (dict(data__sampler="gpu"), "data.sampler is 'gpu'; use one of ('host', 'device')"),
     (dict(train__steps_per_dispatch=2), "train.steps_per_dispatch=2 needs data.sampler=device"),
     (dict(data__curriculum=((0, 1),)), "data.curriculum needs data.sampler=device"),

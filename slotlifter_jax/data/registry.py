@@ -23,6 +23,7 @@ from typing import Optional
 
 from absl import logging
 
+from slotlifter_jax import config_checks
 from slotlifter_jax.data import cameras
 from slotlifter_jax.data import dtu
 from slotlifter_jax.data import pipeline
@@ -33,10 +34,6 @@ from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
 
 SPLITS = ("train", "val", "test")
-FORMATS = ("uorf", "uocf", "dtu", "scannet")
-# `data.frame`: "world", the poses as stored (the paper's), or "source_azimuth", every scene turned
-# about the vertical axis so its (first) source view sits at azimuth 0 (`in_source_azimuth_frame`).
-FRAMES = ("world", "source_azimuth")
 
 
 def hold_out(names: list[str], *, split: str, num_val: int, where: str) -> list[str]:
@@ -145,17 +142,16 @@ def load_split(data_config, split: str, *, max_scenes: Optional[int] = None) -> 
   """
   if split not in SPLITS:
     raise ValueError(f"load_split: split must be one of {SPLITS}, got {split!r}")
+  problem = config_checks.data_problem(data_config)  # data.format and data.frame
+  if problem:
+    raise DataConfigError(f"load_split: {problem}")
   fmt = data_config.format
-  if fmt not in FORMATS:
-    raise DataConfigError(f"load_split: data.format must be one of {FORMATS}, got {fmt!r}")
   if not data_config.root:
     raise DataError("data.root is empty: point it at a data set, or let embedded.resolve_data "
                     "generate the embedded set first")
   if not os.path.isdir(data_config.root):
     raise DataError(f"{data_config.root}: data.root does not exist (or is not a folder)")
   frame = data_config.get("frame", "world")
-  if frame not in FRAMES:
-    raise DataConfigError(f"load_split: data.frame must be one of {FRAMES}, got {frame!r}")
   loader = {"uorf": _load_uorf, "uocf": _load_uorf, "dtu": _load_dtu,
             "scannet": _load_scannet}[fmt]
   scenes = loader(data_config, split, max_scenes)
