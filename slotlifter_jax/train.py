@@ -198,15 +198,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
     raise ConfigError(f"train.batch_scenes={config.train.batch_scenes} must be a multiple of the "
                      f"{n_dev} devices")
   try:
-    ray_stages = config_checks.check_stages(
-        config.train.get("ray_stages", ()), field="train.ray_stages", upper=2**31 - 1,
-        multiple_of=config.train.ray_chunks)
     sampler = pipeline.BatchSampler(
         train_scenes, num_source_views=config.data.num_source_views,
         batch_scenes=config.train.batch_scenes, rays_per_scene=config.train.rays_per_scene,
         novel_ray_prob=config.data.novel_ray_prob, seed=config.seed,
         ray_sampling=config.data.ray_sampling, contrast_mix=config.data.contrast_mix,
-        scene_stages=config.data.get("scene_stages", ()), ray_stages=ray_stages)
+        scene_stages=config.data.get("scene_stages", ()),
+        ray_stages=config.train.get("ray_stages", ()))  # vetted by check_config above
   except ValueError as e:
     raise ConfigError(str(e)) from e
   on_device = _on_device(config, train_scenes)

@@ -192,8 +192,9 @@ class BatchSampler:
     self.seed = int(seed)
     self._sources: dict[tuple[int, int], tuple[int, ...]] = {}  # (scene, target) → sources
     self.scene_stages = config_checks.check_stages(scene_stages, field="data.scene_stages",
-                                     upper=len(self.scenes))
-    self.ray_stages = config_checks.check_stages(ray_stages, field="train.ray_stages", upper=2**31 - 1)
+                                                   upper=len(self.scenes))
+    self.ray_stages = config_checks.check_stages(ray_stages, field="train.ray_stages",
+                                                 upper=2**31 - 1)
     self._check()
 
   def num_scenes_at(self, step: int) -> int:
