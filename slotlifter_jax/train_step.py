@@ -23,6 +23,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
 from slotlifter_jax import averaging
 from slotlifter_jax import config_checks
 from slotlifter_jax import model as model_lib
+from slotlifter_jax import programs
 from slotlifter_jax import schedules
 from slotlifter_jax.data import device_sampler
 from slotlifter_jax.data.types import Scene
@@ -135,8 +136,11 @@ def init_state(model, config, batch: dict, key: jax.Array) -> TrainState:
 def state_shapes(model, config, batch: dict, sharding=None) -> TrainState:
   """init_state's shapes and dtypes, placed with `sharding` if given; nothing is compiled or
   computed (a restore's target)."""
-  shapes = jax.eval_shape(lambda: _state(model, config, batch, jax.random.key(0),
-                                         compiler_options=None))
+  batch_avals = tuple(sorted((k, tuple(v.shape), str(v.dtype)) for k, v in batch.items()))
+  shapes = programs.shared(
+      ("state_shapes", model, programs.config_key(config), batch_avals),
+      lambda: jax.eval_shape(lambda: _state(model, config, batch, jax.random.key(0),
+                                            compiler_options=None)))
   if sharding is None:
     return shapes
   return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), shapes)
@@ -152,10 +156,11 @@ def init_program(model, config, batch: dict, key: jax.Array, *, compiler_options
   rngs = {"params": key, **{s: jax.random.fold_in(key, i + 1) for i, s in enumerate(RNG_STREAMS)}}
   first = {k: v[:1, :1] if k in RAY_KEYS else v[:1] for k, v in batch.items()}
   inputs = model_inputs(first, signed_colour=config.model.colour_range == "signed")
-  init = jax.jit(
+  options = tuple(sorted(compiler_options.items())) if compiler_options else None
+  init = programs.shared(("init", model, options), lambda: jax.jit(
       lambda rngs, inputs: model.init(
           rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True, train=False),
-      compiler_options=compiler_options)
+      compiler_options=compiler_options))
   return init, (rngs, inputs)
 
 
@@ -288,15 +293,19 @@ def make_train_step(model, config, *, key: jax.Array, mesh: Mesh | None = None) 
   `key` is the run's base key; the step's keys are fold_in(key, step). With a mesh, the batch is
   sharded over its scene axis along mesh axis 'data' and the state is replicated.
   """
-  def keyed(state, batch, key):
-    return make_step_fn(model, config, key=key)(state, batch)
-  if mesh is None:
-    compiled = jax.jit(keyed, donate_argnums=0)
-  else:
+  def build():
+    own = config.copy_and_resolve_references()  # a kept program must not see later edits
+    def keyed(state, batch, key):
+      return make_step_fn(model, own, key=key)(state, batch)
+    if mesh is None:
+      return jax.jit(keyed, donate_argnums=0)
     replicated = NamedSharding(mesh, P())
-    compiled = jax.jit(keyed, donate_argnums=0,
-                       in_shardings=(replicated, batch_sharding(mesh), replicated),
-                       out_shardings=(replicated, replicated))
+    return jax.jit(keyed, donate_argnums=0,
+                   in_shardings=(replicated, batch_sharding(mesh), replicated),
+                   out_shardings=(replicated, replicated))
+  # One jitted step per (model, config, mesh) in a process: a restart or a second run of the same
+  # config reuses its trace and compilation (slotlifter_jax/programs.py).
+  compiled = programs.shared(("train_step", model, programs.config_key(config), mesh), build)
   return _WithKeys(compiled, (key,))
 
 
@@ -316,8 +325,10 @@ def make_train_block(model, config, *, key: jax.Array, data_key: jax.Array, num_
   draw = dict(batch_scenes=int(t.batch_scenes), rays_per_scene=int(t.rays_per_scene),
               novel_ray_prob=float(d.novel_ray_prob))
 
+  own = config.copy_and_resolve_references()  # a kept program must not see later edits
+
   def block(state: TrainState, scenes, key, data_key):  # keys as arguments: see _WithKeys
-    step = make_step_fn(model, config, key=key)
+    step = make_step_fn(model, own, key=key)
     def body(state, _):
       limit = device_sampler.curriculum_limit(state.step, stages) if stages else None
       batch = device_sampler.sample_batch(scenes, jax.random.fold_in(data_key, state.step),
@@ -330,12 +341,14 @@ def make_train_block(model, config, *, key: jax.Array, data_key: jax.Array, num_
       return state, jax.tree.map(lambda x: x[None], metrics)
     return jax.lax.scan(body, state, None, length=num_steps, unroll=unroll)
 
-  if mesh is None:
-    compiled = jax.jit(block, donate_argnums=0)
-  else:
+  def build():
+    if mesh is None:
+      return jax.jit(block, donate_argnums=0)
     replicated = NamedSharding(mesh, P())
-    compiled = jax.jit(block, donate_argnums=0, in_shardings=(replicated,) * 4,
-                       out_shardings=(replicated, replicated))
+    return jax.jit(block, donate_argnums=0, in_shardings=(replicated,) * 4,
+                   out_shardings=(replicated, replicated))
+  compiled = programs.shared(
+      ("train_block", model, programs.config_key(config), num_steps, mesh, unroll), build)
   return _WithKeys(compiled, (key, data_key))
 
 

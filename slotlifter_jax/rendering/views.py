@@ -15,6 +15,7 @@ import numpy as np
 from slotlifter_jax import config_checks
 from slotlifter_jax import geometry
 from slotlifter_jax import metrics
+from slotlifter_jax import programs
 from slotlifter_jax.data.types import Scene
 
 
@@ -51,8 +52,8 @@ def scene_sources(scene: Scene, *, signed: bool, source_indices=None) -> dict:
 
 def make_encode(model):
   """encode(params, sources) -> Encoded, jitted, evaluation mode (no slot noise)."""
-  return jax.jit(lambda params, sources: model.apply(
-      {"params": params}, **sources, slot_noise_sigma=0.0, train=False, method=model.encode))
+  return programs.shared(("encode", model), lambda: jax.jit(lambda params, sources: model.apply(
+      {"params": params}, **sources, slot_noise_sigma=0.0, train=False, method=model.encode)))
 
 
 def render_cameras(render_chunk, *, cam_to_world, intrinsics, height: int, width: int,
@@ -101,16 +102,21 @@ class SceneRenderer:
     self.supersample = config_checks.check_supersample(config.render)
     self.num_source_views = int(config.data.num_source_views)
 
-    @jax.jit
+    signed = self.signed
+
     def render_chunk(params, encoded, sources, origins, directions, locality):
       out = model.apply({"params": params}, encoded, **sources, ray_origins=origins,
                         ray_directions=directions, keep_ratio=1.0, locality=locality, train=False,
                         method=model.render_rays)
       final = out.fine if out.fine is not None else out.coarse
-      colour = (final.colour + 1.0) * 0.5 if self.signed else final.colour
+      colour = (final.colour + 1.0) * 0.5 if signed else final.colour
       return colour, final.depth, final.segmentation
 
-    self._encode, self._render_chunk = make_encode(model), render_chunk
+    # Every validation of a run (and every Validator of one model in a process) renders with the
+    # same jitted function, traced once (slotlifter_jax/programs.py).
+    self._encode = make_encode(model)
+    self._render_chunk = programs.shared(("render_chunk", model, signed),
+                                         lambda: jax.jit(render_chunk))
 
   def sources(self, scene: Scene, source_indices=None) -> dict:
     return scene_sources(scene, signed=self.signed, source_indices=source_indices)
