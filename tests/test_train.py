@@ -29,7 +29,8 @@ def test_init_weights_are_flax_init_on_the_whole_batch_at_the_default_compile_le
   rngs = {"params": key, **{s: jax.random.key(100 + i) for i, s in enumerate(step_lib.RNG_STREAMS)}}
   reference = jax.jit(lambda rngs, inputs: model.init(
       rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True, train=False),
-      compiler_options={"xla_backend_optimization_level": 3})(  # XLA's default, not the suite's
+      # XLA's defaults, not the suite's (tests/conftest.py): level 3, the fusion emitters.
+      compiler_options={"xla_backend_optimization_level": 3, "xla_cpu_use_fusion_emitters": True})(
           rngs, step_lib.model_inputs(batch, signed_colour=False))["params"]
   assert batch["ray_directions"].shape[:2] == (2, 32)  # the reference saw the whole batch
   jax.tree.map(np.testing.assert_array_equal, state.params, reference)
