@@ -27,10 +27,10 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:  # set before any test module 
 _LEVEL = "--xla_backend_optimization_level"
 if _LEVEL not in os.environ.get("XLA_FLAGS", ""):
   os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_LEVEL}=0".strip()
-# XLA:CPU's older loop emitters instead of its MLIR fusion emitters: the smoke train step
-# compiles in 11–13 s instead of 17–18 s at -O0 (2026-12-01's AVX2 host). Not for training: at
-# the default level the same switch made the `fast` step compile in 94 s instead of 30 and run
-# 1.2× slower (experiments/README.md, "Compile time").
+# XLA:CPU's older loop emitters instead of its MLIR fusion emitters: at -O0 the smoke train step
+# compiles in 14.0 s instead of 21.1 s (2026-12-01's AVX2 host). Not for training: at the default
+# level they compile the `fast` step in 82–94 s instead of 30–34 s and run it no faster
+# (experiments/README.md, "Compile time").
 _EMITTERS = "--xla_cpu_use_fusion_emitters"
 if _EMITTERS not in os.environ["XLA_FLAGS"]:
   os.environ["XLA_FLAGS"] += f" {_EMITTERS}=false"
