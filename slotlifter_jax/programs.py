@@ -17,13 +17,11 @@ from __future__ import annotations
 
 import collections
 import json
-import threading
 from typing import Any, Callable, Hashable
 
 MAX_PROGRAMS = 16
 
 _programs: collections.OrderedDict = collections.OrderedDict()
-_lock = threading.Lock()
 
 
 def config_key(config) -> str:
@@ -33,15 +31,10 @@ def config_key(config) -> str:
 
 def shared(key: Hashable, build: Callable[[], Any]) -> Any:
   """The value built for `key` in this process (most recently used first), else `build()`."""
-  with _lock:
-    if key in _programs:
-      _programs.move_to_end(key)
-      return _programs[key]
-  value = build()
-  with _lock:
-    _programs[key] = value
+  if key in _programs:
     _programs.move_to_end(key)
-    while len(_programs) > MAX_PROGRAMS:
-      _programs.popitem(last=False)
+    return _programs[key]
+  value = _programs[key] = build()
+  while len(_programs) > MAX_PROGRAMS:
+    _programs.popitem(last=False)
   return value
-

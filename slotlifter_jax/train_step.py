@@ -325,23 +325,23 @@ def make_train_block(model, config, *, key: jax.Array, data_key: jax.Array, num_
   draw = dict(batch_scenes=int(t.batch_scenes), rays_per_scene=int(t.rays_per_scene),
               novel_ray_prob=float(d.novel_ray_prob))
 
-  own = config.copy_and_resolve_references()  # a kept program must not see later edits
-
-  def block(state: TrainState, scenes, key, data_key):  # keys as arguments: see _WithKeys
-    step = make_step_fn(model, own, key=key)
-    def body(state, _):
-      limit = device_sampler.curriculum_limit(state.step, stages) if stages else None
-      batch = device_sampler.sample_batch(scenes, jax.random.fold_in(data_key, state.step),
-                                          max_objects=limit, **draw)
-      if mesh is not None:
-        batch = jax.lax.with_sharding_constraint(batch, batch_sharding(mesh))
-      return step(state, batch)
-    if num_steps == 1:  # no loop at all: XLA:CPU compiles a loop body's convolutions worse
-      state, metrics = body(state, None)
-      return state, jax.tree.map(lambda x: x[None], metrics)
-    return jax.lax.scan(body, state, None, length=num_steps, unroll=unroll)
-
   def build():
+    own = config.copy_and_resolve_references()  # a kept program must not see later edits
+
+    def block(state: TrainState, scenes, key, data_key):  # keys as arguments: see _WithKeys
+      step = make_step_fn(model, own, key=key)
+      def body(state, _):
+        limit = device_sampler.curriculum_limit(state.step, stages) if stages else None
+        batch = device_sampler.sample_batch(scenes, jax.random.fold_in(data_key, state.step),
+                                            max_objects=limit, **draw)
+        if mesh is not None:
+          batch = jax.lax.with_sharding_constraint(batch, batch_sharding(mesh))
+        return step(state, batch)
+      if num_steps == 1:  # no loop at all: XLA:CPU compiles a loop body's convolutions worse
+        state, metrics = body(state, None)
+        return state, jax.tree.map(lambda x: x[None], metrics)
+      return jax.lax.scan(body, state, None, length=num_steps, unroll=unroll)
+
     if mesh is None:
       return jax.jit(block, donate_argnums=0)
     replicated = NamedSharding(mesh, P())

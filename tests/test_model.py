@@ -509,16 +509,17 @@ def test_slot_position_embedding_adds_a_linear_map_of_the_cell_grid_to_the_slot_
   without = {"params": {k: v for k, v in variables["params"].items() if k != "slot_pos_proj"}}
   zeroed = {"params": {**variables["params"],
                        "slot_pos_proj": jax.tree.map(jnp.zeros_like, proj)}}
-  encode = lambda m, v: jit(lambda: m.apply(v, **sources, train=False, method=m.encode))()
+  # XLA's default fusion emitters, not the suite's loop emitters (tests/conftest.py): with those
+  # the two programs' encoders round differently in the last bits.
+  default_jit = functools.partial(jax.jit, compiler_options={
+      "xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": True})
+  encode = lambda m, v: default_jit(lambda: m.apply(v, **sources, train=False, method=m.encode))()
   ref = encode(paper, without)
-  # The same function as another program (one more, zero, term in the slots' input): float32
-  # rounding through the slot attention iterations, the tolerance of the other layout tests.
-  chex.assert_trees_all_close(encode(with_pos, zeroed).slots, ref.slots, atol=1e-5, rtol=1e-5)
+  chex.assert_trees_all_close(encode(with_pos, zeroed).slots, ref.slots, atol=1e-6)
   moved = encode(with_pos, variables)
   assert float(jnp.max(jnp.abs(moved.slots - ref.slots))) > 1e-3
-  # The lifted features are the encoder's, untouched by the embedding (which moves the slots by
-  # more than 1e-3): equal up to the rounding of two programs, as above.
-  chex.assert_trees_all_close(moved.features, ref.features, atol=1e-5, rtol=1e-5)
+  # The lifted features are the encoder's, untouched by the embedding.
+  chex.assert_trees_all_close(moved.features, ref.features, atol=0)
 
 
 def test_encoder_output_stride_2_gives_slot_attention_and_the_locality_box_the_finer_grid():

@@ -1,8 +1,6 @@
 """The process's shared jitted programs (slotlifter_jax/programs.py): equal requests get the same
 function, different ones do not, and only the most recent are kept."""
 
-import itertools
-
 import jax
 
 from slotlifter_jax import model as model_lib
@@ -10,11 +8,8 @@ from slotlifter_jax import programs
 from slotlifter_jax import train_step as step_lib
 from train_helpers import load_config
 
-_fresh = itertools.count()
-
-
 def test_equal_keys_share_one_build_and_the_oldest_is_dropped():
-  tag = f"lru-{next(_fresh)}"  # keys no other test uses
+  tag = "lru-test"  # keys no other test uses
   builds = []
   def build(name):
     builds.append(name)
@@ -22,7 +17,7 @@ def test_equal_keys_share_one_build_and_the_oldest_is_dropped():
   first = programs.shared((tag, 0), lambda: build(0))
   assert programs.shared((tag, 0), lambda: build("again")) is first
   assert builds == [0]
-  # Fill the cache with newer keys, touching (tag, 0) halfway: it outlives (tag, 1) only.
+  # Fill the cache with newer keys, then touch (tag, 0): the next new key evicts (tag, 1).
   programs.shared((tag, 1), lambda: build(1))
   for i in range(2, programs.MAX_PROGRAMS):
     programs.shared((tag, i), lambda i=i: build(i))
