@@ -128,19 +128,29 @@ def init_state(model, config, batch: dict, key: jax.Array) -> TrainState:
   # The program is almost all inlined threefry draws, one per weight (the forward is dead code);
   # on a CPU, LLVM at -O1 compiles it in 45–75 % of the default level's time, to the same bits
   # (experiments/compile_levels.py; experiments/README.md, "Compile time").
+  init, args = init_program(model, config, batch, key, compiler_options=_init_options())
+  return _state_from(init(*args)["params"], config)
+
+
+def _init_options() -> dict | None:
   cpu = jax.default_backend() == "cpu"
-  return _state(model, config, batch, key,
-                compiler_options={"xla_backend_optimization_level": 1} if cpu else None)
+  return {"xla_backend_optimization_level": 1} if cpu else None
 
 
 def state_shapes(model, config, batch: dict, sharding=None) -> TrainState:
   """init_state's shapes and dtypes, placed with `sharding` if given; nothing is compiled or
   computed (a restore's target)."""
   batch_avals = tuple(sorted((k, tuple(v.shape), str(v.dtype)) for k, v in batch.items()))
-  shapes = programs.shared(
-      ("state_shapes", model, programs.config_key(config), batch_avals),
-      lambda: jax.eval_shape(lambda: _state(model, config, batch, jax.random.key(0),
-                                            compiler_options=None)))
+  # Through init_state's own jitted init (same compiler options, so the same program object): the
+  # trace made here is the one a fresh run's init_state then reuses, instead of tracing the
+  # model's init twice (a few seconds of each process that starts a run).
+  def build():
+    key = jax.random.key(0, impl=config.train.get("prng_impl", "threefry2x32"))  # the run's kind
+    init, args = init_program(model, config, batch, key, compiler_options=_init_options())
+    params = jax.eval_shape(init, *args)["params"]  # a top-level trace, as init_state's call
+    return jax.eval_shape(lambda p: _state_from(p, config), params)
+  shapes = programs.shared(("state_shapes", model, programs.config_key(config), batch_avals),
+                           build)
   if sharding is None:
     return shapes
   return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=sharding), shapes)
@@ -157,17 +167,15 @@ def init_program(model, config, batch: dict, key: jax.Array, *, compiler_options
   first = {k: v[:1, :1] if k in RAY_KEYS else v[:1] for k, v in batch.items()}
   inputs = model_inputs(first, signed_colour=config.model.colour_range == "signed")
   options = tuple(sorted(compiler_options.items())) if compiler_options else None
-  init = programs.shared(("init", model, options), lambda: jax.jit(
-      lambda rngs, inputs: model.init(
-          rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True, train=False),
-      compiler_options=compiler_options))
+  def init_variables(rngs, inputs):
+    return model.init(rngs, **inputs, slot_noise_sigma=1.0, keep_ratio=1.0, locality=True,
+                      train=False)
+  init = programs.shared(("init", model, options),
+                         lambda: jax.jit(init_variables, compiler_options=compiler_options))
   return init, (rngs, inputs)
 
 
-def _state(model, config, batch, key, *, compiler_options) -> TrainState:
-  init, args = init_program(model, config, batch, key, compiler_options=compiler_options)
-  variables = init(*args)
-  params = variables["params"]
+def _state_from(params, config) -> TrainState:
   tx = make_optimizer(config.train)
   zero = lambda: jnp.zeros((), jnp.int32)  # distinct buffers: the step donates every leaf
   return TrainState(step=zero(), params=params, opt_state=tx.init(params),

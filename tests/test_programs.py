@@ -6,7 +6,7 @@ import jax
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import programs
 from slotlifter_jax import train_step as step_lib
-from train_helpers import load_config
+from train_helpers import fake_batch, load_config
 
 def test_equal_keys_share_one_build_and_the_oldest_is_dropped():
   tag = "lru-test"  # keys no other test uses
@@ -48,3 +48,31 @@ def test_train_step_of_an_equal_model_and_config_is_the_same_jitted_function():
   other = config.copy_and_resolve_references()
   other.train.warmup_steps += 1
   assert step(other, 0)._fn is not a._fn
+
+
+def test_init_state_after_state_shapes_does_not_trace_the_init_again():
+  """A fresh run asks for the state's shapes (the restore target) and then for the state: the
+  model's init is traced once, by the first. Counted with JAX's own trace events."""
+  traced = []
+  def listener(event, duration, **kwargs):
+    if event == "/jax/core/compile/jaxpr_trace_duration":
+      traced.append(kwargs.get("fun_name"))
+  jax.monitoring.register_event_duration_secs_listener(listener)
+  try:
+    config = load_config()
+    config.model.slot_mlp_dim = 48  # models no other test builds: nothing is traced yet
+    batch = fake_batch(config)
+    model = model_lib.build_model(config)
+    shapes = step_lib.state_shapes(model, config, batch)
+    assert traced.count("init_variables") == 1
+    state = step_lib.init_state(model, config, batch, jax.random.key(3))
+    assert traced.count("init_variables") == 1
+    assert jax.tree.structure(shapes) == jax.tree.structure(state)
+    assert [(s.shape, s.dtype) for s in jax.tree.leaves(shapes)] == [
+        (x.shape, x.dtype) for x in jax.tree.leaves(state)]
+    # Without state_shapes first, init_state traces it (so the count above can tell).
+    config.model.slot_mlp_dim = 40
+    step_lib.init_state(model_lib.build_model(config), config, batch, jax.random.key(3))
+    assert traced.count("init_variables") == 2
+  finally:
+    jax.monitoring.unregister_event_duration_listener(listener)
