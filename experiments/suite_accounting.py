@@ -34,10 +34,13 @@ import atexit, json, os, resource, sys, threading, time
 _dir = os.environ["SUITE_ACCOUNTING_DIR"]
 _start_test = os.environ.get("PYTEST_CURRENT_TEST", "")
 _per = {}
+_written = [0.0]
 def _add(kind, seconds):
   test = os.environ.get("PYTEST_CURRENT_TEST", _start_test).rsplit(" ", 1)[0]
   row = _per.setdefault(test, dict.fromkeys(("trace", "lower", "compile", "cache_read"), 0.0))
   row[kind] += seconds
+  if time.time() - _written[0] > 2.0:  # xdist's workers can end without atexit or os._exit
+    _report()
 def _install(pjit):
   from jax._src import monitoring
   depth = threading.local()
@@ -78,8 +81,11 @@ def _report():
   usage = resource.getrusage(resource.RUSAGE_SELF)
   record = dict(pid=os.getpid(), argv=" ".join(sys.argv)[:300], start_test=_start_test,
                 cpu_s=usage.ru_utime + usage.ru_stime, per_test=_per)
-  with open(os.path.join(_dir, f"{os.getpid()}.json"), "w") as f:
+  path = os.path.join(_dir, f"{os.getpid()}.json")
+  with open(path + ".tmp", "w") as f:
     json.dump(record, f)
+  os.replace(path + ".tmp", path)
+  _written[0] = time.time()
 atexit.register(_report)
 _exit = os._exit
 def _exit_reporting(code):  # xdist's workers may leave through os._exit, which skips atexit

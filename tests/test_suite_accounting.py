@@ -1,11 +1,10 @@
 """experiments/suite_accounting.py: its sums on hand-made records, and its hook through the command
-line on a two-test file (one jit in the pytest process, one in a process the test starts)."""
+line on two test files (one jits in an xdist worker, one in a process its test starts)."""
 
 import json
 import os
 import subprocess
 import sys
-import textwrap
 
 import pytest
 
@@ -41,29 +40,29 @@ def test_summary_adds_phases_per_file_and_cpu_of_started_processes():
 
 
 @pytest.mark.slow
-def test_command_line_counts_a_jit_in_the_worker_and_in_a_started_process(tmp_path):
-  (tmp_path / "test_tiny.py").write_text(textwrap.dedent('''
-      import subprocess, sys
-      JIT = "import jax, jax.numpy as jnp; jax.jit(lambda x: jnp.sin(x) * 2)(jnp.ones(5))"
-      def test_in_process():
-        exec(JIT, {})
-      def test_in_a_subprocess():
-        subprocess.run([sys.executable, "-c", JIT], check=True)
-  '''))
+def test_command_line_counts_a_jit_in_an_xdist_worker_and_in_a_started_process(tmp_path):
+  jit = "import jax, jax.numpy as jnp; jax.jit(lambda x: jnp.sin(x) * 2)(jnp.ones(5))"
+  (tmp_path / "test_in_worker.py").write_text(f"def test_jit():\n  exec({jit!r}, {{}})\n")
+  (tmp_path / "test_in_subprocess.py").write_text(
+      "import subprocess, sys\n"
+      f"def test_jit():\n  subprocess.run([sys.executable, '-c', {jit!r}], check=True)\n")
   out = tmp_path / "accounting.json"
   # No compilation cache, so that both processes compile: the counts below then cannot be 0.
   env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
   env["JAX_ENABLE_COMPILATION_CACHE"] = "false"
-  args = [sys.executable, SCRIPT, f"--out={out}", "--", "-q", "-n", "0", "-p", "no:cacheprovider",
-          "--rootdir", str(tmp_path), str(tmp_path / "test_tiny.py")]
+  args = [sys.executable, SCRIPT, f"--out={out}", "--", "-q", "-n", "1", "-p", "no:cacheprovider",
+          "--rootdir", str(tmp_path), str(tmp_path)]
   r = subprocess.run(args, capture_output=True, text=True, cwd=tmp_path, env=env)
   assert r.returncode == 0, r.stdout + r.stderr
   result = json.loads(out.read_text())
-  assert result["returncode"] == 0 and result["processes"] >= 2
-  (name,) = [n for n in result["files"] if n.endswith("test_tiny.py")]
-  row = result["files"][name]
-  assert row["trace"] > 0 and row["lower"] > 0 and row["compile"] > 0
-  assert row["subprocess_cpu_s"] > 0  # the started process's CPU, attributed to its test
+  assert result["returncode"] == 0 and result["processes"] >= 3  # controller, worker, started
+  rows = {name.rsplit("/", 1)[-1]: row for name, row in result["files"].items()}
+  # The worker's own jit: only the worker's record can hold it.
+  worker = rows["test_in_worker.py"]
+  assert worker["trace"] > 0 and worker["lower"] > 0 and worker["compile"] > 0
+  assert worker["subprocess_cpu_s"] == 0
+  started = rows["test_in_subprocess.py"]
+  assert started["compile"] > 0 and started["subprocess_cpu_s"] > 0
   # An existing file is kept: one line, nonzero exit.
   again = subprocess.run(args, capture_output=True, text=True, cwd=tmp_path, env=env)
   assert again.returncode != 0 and "exists; choose another file" in again.stderr
