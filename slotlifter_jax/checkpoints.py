@@ -30,8 +30,9 @@ ARCHITECTURE_FIELDS = ("model",)
 # float32 with the same shapes (model.py, "Numerics"), so a run trained in float32 can be evaluated,
 # resumed or rendered in bfloat16 and back. Every slot attention iteration applies the same
 # parameters, so a run can be evaluated with more iterations than it was trained with (Locatello
-# et al. 2020 test with more); evaluation records either change (evaluate.differences_from_training).
-NOT_ARCHITECTURE = ("model.dtype", "model.slot_iters")
+# et al. 2020 test with more); the folded products compute the same function from the same
+# parameters. Evaluation records any of these changes (evaluate.differences_from_training).
+NOT_ARCHITECTURE = ("model.dtype", "model.slot_iters", "model.fold_products")
 # ...and these fields of other sections, because the weights are tied to them: a model trained with
 # positions in the source view's azimuth frame renders another frame's positions wrongly.
 ALSO_ARCHITECTURE = ("data.frame",)

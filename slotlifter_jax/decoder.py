@@ -16,6 +16,12 @@ then a final LayerNorm. The mapping turns the result into point-slot weights
 W = softmax(q(h)·k(S')ᵀ/√C) over K+1, the slot feature F_s = Linear(W·S'), and the slot-based
 density σ = exp(s_σ)·Σ_{k≥1} W_k·ReLU(A_k). The colour MLP maps F_s + E_p to RGB.
 
+With `fold_products` (the model's `model.fold_products`, off by default) the cross-attention and
+the mapping compute these functions with the per-point Linears folded into per-scene matrices
+built from the K+1 slots (`folded.py`): the same parameters and
+the same function to float32 rounding, with fewer per-point products, but not the same rounding,
+so a run is not the run it would be without it (experiments/README.md, "Folded products").
+
 `density_mode="mlp"` is the paper's "without slot-based density" ablation (docs/method.md §5): σ
 comes from a small head on h instead (`mlp_density`); W, F_s and the colour are unchanged.
 
@@ -47,6 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from slotlifter_jax.encoder import torch_default_bias_init, torch_default_kernel_init
+from slotlifter_jax.folded import CrossAttention, LinearParams, folded_mapping
 
 # PyTorch's LayerNorm default, kept to match the official model.
 LAYER_NORM_EPS = 1e-5
@@ -227,6 +234,7 @@ class AllocationBlock(nn.Module):
   ffn_dim: int = 256
   out_gain: float = 1.0
   train: bool = False
+  fold_products: bool = False  # cross-attention by `folded.folded_cross_attention` (module docstring)
   dtype: Any = jnp.float32  # computation dtype; h stays float32 (see the module docstring)
 
   @nn.compact
@@ -240,7 +248,9 @@ class AllocationBlock(nn.Module):
 
     # Cross-attention from every point to S' (keys/values shared by all points of a scene).
     x = ln("cross_norm")(h).reshape(b, r * s, c)  # [B, R·S, C]
-    x = attention(self.width, "cross_attn")(x, slots)
+    cross = CrossAttention if self.fold_products else MultiHeadAttention
+    x = cross(self.width, self.width, self.num_heads, self.out_gain, dtype=self.dtype,
+              name="cross_attn")(x, slots)
     x = x.reshape(b, r, s, c)  # [B, R, S, C]
     # Conv1d(k=3, 'same') along the ray, written as one Dense over shifted copies.
     fan_in = 3 * c
@@ -271,6 +281,7 @@ class AllocationTransformer(nn.Module):
   ffn_dim: int = 256
   max_dropout: float = 0.2
   remat_scan: bool = False
+  fold_products: bool = False
   dtype: Any = jnp.float32  # computation dtype; the output, a LayerNorm's, is in it
 
   @nn.compact
@@ -281,7 +292,8 @@ class AllocationTransformer(nn.Module):
     keys = jax.random.split(self.make_rng("dropout"), n) if train else None
     block_kwargs = dict(width=self.width, num_heads=self.num_heads,
                         self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim,
-                        out_gain=(3.0 * n) ** -0.5, train=train, dtype=self.dtype)
+                        out_gain=(3.0 * n) ** -0.5, train=train,
+                        fold_products=self.fold_products, dtype=self.dtype)
     if self.remat_scan:
       blocks = nn.scan(
           nn.remat(AllocationBlock, prevent_cse=False),
@@ -333,6 +345,7 @@ class SlotDecoder(nn.Module):
   locality_floor_z: Optional[float] = None  # see `locality_mask`; None: the paper's box
   density_log_init: float = 0.0  # initial s_σ (official: 0)
   density_mode: str = "slot"  # "slot" | "mlp" (see the class docstring)
+  fold_products: bool = False  # the products of `folded.py` (module docstring)
   dtype: Any = jnp.float32  # computation dtype (see the module docstring)
 
   @nn.compact
@@ -349,20 +362,28 @@ class SlotDecoder(nn.Module):
     h = AllocationTransformer(
         width=self.width, num_blocks=self.num_blocks, num_heads=self.num_heads,
         self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim, max_dropout=self.max_dropout,
-        remat_scan=self.remat_scan, dtype=self.dtype,
+        remat_scan=self.remat_scan, fold_products=self.fold_products, dtype=self.dtype,
         name="transformer")(point_features, slots_all, train=train)
 
-    q = dense(self.width, "map_query")(h)  # [B, R, S, C]
-    k = dense(self.width, "map_key")(slots_all)  # [B, K+1, C]
-    # A (the logits) feeds the softmax W and the density's ReLU(A_k): float32 after the product.
-    logits = jnp.einsum("brsc,bkc->brsk", q, k).astype(jnp.float32) / math.sqrt(
-        self.width)  # [B, R, S, K+1]
-    logits = locality_mask(logits=logits, points=points, box=self.locality_box, enabled=locality,
-                           floor_z=self.locality_floor_z)
-    weights = point_slot_weights(logits)
-    mixed = jnp.einsum("brsk,bkd->brsd", weights.astype(self.dtype),
-                       slots_all.astype(self.dtype))  # [B, R, S, Ds]: W·S'
-    features = dense(self.width, "map_out")(mixed)
+    mask = lambda a: locality_mask(logits=a, points=points, box=self.locality_box,
+                                   enabled=locality, floor_z=self.locality_floor_z)
+    if self.fold_products:
+      # The same A and F_s with the per-point Linears folded into per-scene ones.
+      linear = lambda width, name: LinearParams(width, _xavier(), name=name)
+      logits, weights, features = folded_mapping(
+          h=h, slots=slots_all, query=linear(self.width, "map_query")(self.width),
+          key=linear(self.width, "map_key")(ds), out=linear(self.width, "map_out")(ds),
+          mask=mask, dtype=self.dtype)
+    else:
+      q = dense(self.width, "map_query")(h)  # [B, R, S, C]
+      k = dense(self.width, "map_key")(slots_all)  # [B, K+1, C]
+      # A (the logits) feeds the softmax W and the density's ReLU(A_k): float32 after the product.
+      logits = mask(jnp.einsum("brsc,bkc->brsk", q, k).astype(jnp.float32) / math.sqrt(
+          self.width))  # [B, R, S, K+1]
+      weights = point_slot_weights(logits)
+      mixed = jnp.einsum("brsk,bkd->brsd", weights.astype(self.dtype),
+                         slots_all.astype(self.dtype))  # [B, R, S, Ds]: W·S'
+      features = dense(self.width, "map_out")(mixed)
     log_scale = self.param("log_density_scale", nn.initializers.constant(self.density_log_init), ())
     if self.density_mode == "slot":
       density = slot_density(logits=logits, weights=weights, log_scale=log_scale)

@@ -58,6 +58,14 @@ def base_config() -> ml_collections.ConfigDict:
   # on (`train.locality_attention_start`) it does neither ("Twentieth round").
   m.locality_attention = False
   m.remat_scan = False  # nn.scan + nn.remat over the decoder blocks: less memory, more time
+  # The decoder's cross-attention and point-slot mapping, and E_p's direction half, in a folded
+  # order (folded.folded_cross_attention, folded.folded_mapping, model.PointEmbedding): the same
+  # parameters and function to float32 rounding, 0.90× the `fast` step and 0.87× `quick`'s. Off:
+  # its rounding makes other trajectories, and the one `fast` run made with it (seed 0,
+  # 2026-12-03) split the scenes by step 30 000 and lost its floor over the release, which none
+  # of the README's seeds did (experiments/README.md, "Folded products"); whether that is the
+  # fold or the seed is not known.
+  m.fold_products = False
   # Computation dtype: "float32", or "bfloat16" for bf16 matmuls and convolutions with float32
   # parameters, softmaxes, norm statistics, volume rendering and loss (model.py, "Numerics";
   # tolerances in tests/test_bf16.py). float32 stays the default: on this CPU (AVX-512 BF16, no

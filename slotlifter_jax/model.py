@@ -147,6 +147,33 @@ def point_embedding_input(*, points: jax.Array, directions: jax.Array,
   return jnp.concatenate([pe_points, pe_dirs], axis=-1)  # [B, R, S, 12F]
 
 
+class PointEmbedding(nn.Module):
+  """E_p = Linear([PE(xyz), PE(unit ray direction)]) per sample (docs/method.md §1.3).
+
+  points [B, R, S, 3], directions [B, R, 3] → [B, R, S, C] float32. The Linear's parameters are
+  those of one `nn.Dense` on the 12·num_freqs-wide concatenation (kernel rows: the points' 6F
+  first), but the direction half is applied once per ray and broadcast over its S samples: the
+  same function without S copies of the direction's sines, cosines and product.
+  """
+  features: int
+  num_freqs: int = 10
+  dtype: Any = jnp.float32  # computation dtype of the Linear; the encoding itself is float32
+
+  @nn.compact
+  def __call__(self, points: jax.Array, directions: jax.Array) -> jax.Array:
+    width = 6 * self.num_freqs  # sin and cos of F frequencies of 3 coordinates
+    kernel = self.param("kernel", nn.initializers.xavier_uniform(),
+                        (2 * width, self.features), jnp.float32)
+    bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
+    kernel, bias = kernel.astype(self.dtype), bias.astype(self.dtype)
+    # float32 encodings: in bfloat16 the argument 2^9·x would be coarser than the period 2π.
+    pe_points = geometry.positional_encoding(points, self.num_freqs)  # [B, R, S, 6F]
+    pe_dirs = geometry.positional_encoding(directions, self.num_freqs)  # [B, R, 6F]
+    per_ray = pe_dirs.astype(self.dtype) @ kernel[width:] + bias  # [B, R, C]
+    e_p = pe_points.astype(self.dtype) @ kernel[:width] + per_ray[..., None, :]
+    return e_p.astype(jnp.float32)
+
+
 class SlotLifter(nn.Module):
   """The whole model; build it from a config with `build_model`."""
   # Encoder (§1.1).
@@ -184,6 +211,10 @@ class SlotLifter(nn.Module):
   # never enters the locality box go to slot attention's first slot only (`background_cells`).
   locality_attention: bool = False
   remat_scan: bool = False
+  # The decoder's cross-attention and mapping, and E_p's direction half, computed in a folded
+  # order: the same parameters and function, fewer per-point products, other rounding
+  # (decoder.py's module docstring, `PointEmbedding`).
+  fold_products: bool = False
   mask_shared_across_batch: bool = True
   # Ablations (docs/method.md §5); the defaults are the paper's method.
   feature_lifting: bool = True  # False: F_p = E_p only
@@ -216,7 +247,10 @@ class SlotLifter(nn.Module):
     # xavier-uniform kernels, zero biases: the official `linear` helper.
     dense = lambda name: nn.Dense(self.point_dim, kernel_init=nn.initializers.xavier_uniform(),
                                   dtype=self.dtype, name=name)
-    self.pos_proj = dense("pos_proj")  # E_p, shared by both passes
+    # E_p, shared by both passes; the folded form applies the direction half once per ray.
+    self.pos_proj = (PointEmbedding(self.point_dim, self.num_freqs, dtype=self.dtype,
+                                    name="pos_proj")
+                     if self.fold_products else dense("pos_proj"))
     passes = ["", "_fine"] if self.num_fine_samples > 0 else [""]
     # One (lifting Linear, slot decoder, colour MLP) triple per pass; the input width of the lifting
     # Linear (D+3 for V = 1, 2(D+3) for V > 1) is inferred from the first call.
@@ -228,7 +262,7 @@ class SlotLifter(nn.Module):
             remat_scan=self.remat_scan, locality_box=self.locality_box,
             locality_floor_z=self.locality_floor_z,
             density_log_init=self.density_log_init, density_mode=self.density_mode,
-            dtype=self.dtype, name=f"allocation{p}")
+            fold_products=self.fold_products, dtype=self.dtype, name=f"allocation{p}")
         for p in passes]
     self.colour_mlps = [
         decoder_lib.ColourMLP(hidden=self.colour_hidden, num_layers=self.colour_layers,
@@ -313,9 +347,12 @@ class SlotLifter(nn.Module):
         f_lift = lifting.apply_ray_mask(lifted=f_lift, keep=keep)
     # The encoding is float32 (geometry.positional_encoding of float32 points); only the Linear
     # runs in the computation dtype.
-    e_p = self.pos_proj(point_embedding_input(points=points, directions=ray_directions,
-                                              num_freqs=self.num_freqs)).astype(
-                                                  jnp.float32)  # [B, R, S, C]
+    if self.fold_products:
+      e_p = self.pos_proj(points, ray_directions)  # [B, R, S, C] float32
+    else:
+      e_p = self.pos_proj(point_embedding_input(points=points, directions=ray_directions,
+                                                num_freqs=self.num_freqs)).astype(
+                                                    jnp.float32)  # [B, R, S, C]
     point_features = e_p if f_lift is None else f_lift + e_p  # F_p [B, R, S, C]
     alloc = self.allocations[index](point_features, encoded.slots, points, locality=locality,
                                     train=train)
@@ -444,6 +481,7 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       locality_floor_z=float(m.locality_floor_z) if m.get("locality_floor", False) else None,
       locality_attention=bool(m.get("locality_attention", False)),
       remat_scan=bool(m.remat_scan),
+      fold_products=bool(m.get("fold_products", False)),
       density_scale=float(m.density_scale),
       density_log_init=float(m.density_log_init),
       near=float(r.near),
