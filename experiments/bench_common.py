@@ -36,6 +36,9 @@ CONFIGS = {
     "fast_stride2": dict(variant="fast", overrides={"model.encoder_output_stride": 2}),
     # fast with 8 samples per ray instead of 16 (the pareto grid's `samples8`, experiments/pareto.py).
     "fast_samples8": dict(variant="fast", overrides={"render.num_samples": 8}),
+    # quick and fast with the decoder's products folded (model.fold_products; decoder.py).
+    "quick_fold": dict(variant="quick", overrides={"model.fold_products": True}),
+    "fast_fold": dict(variant="fast", overrides={"model.fold_products": True}),
 }
 
 
