@@ -275,18 +275,26 @@ def _open_trained(workdir: str) -> tuple[str, Checkpoints]:
   return root, Checkpoints(workdir)
 
 
+def locate_checkpoint(workdir: str, checkpoint: str = "latest") -> tuple[str, int, int | None]:
+  """(the step folder of the run's checkpoint `checkpoint`, its step, the step of the run's best
+  checkpoint or None), `checkpoint` as in `_choose_checkpoint`. Reads only the folder names and
+  the best checkpoints' recorded scores; creates nothing."""
+  root, manager = _open_trained(workdir)
+  try:
+    which, step = _choose_checkpoint(manager, checkpoint)
+    best = manager.best.best_step() if manager.best.all_steps() else None
+  finally:
+    manager.close()
+  return os.path.join(root, which, str(step)), step, (None if best is None else int(best))
+
+
 def read_saved_state(workdir: str, checkpoint: str = "latest") -> tuple[dict, str]:
   """(the train state of the run's checkpoint `checkpoint` as saved: a nested dict of arrays on
   the first device; its step directory), `checkpoint` as in `_choose_checkpoint`.
 
   Shapes and dtypes come from the checkpoint's own metadata, so no config, model or data is
   needed: experiments/compare_checkpoints.py compares two runs' states with it."""
-  root, manager = _open_trained(workdir)
-  try:
-    which, step = _choose_checkpoint(manager, checkpoint)
-  finally:
-    manager.close()
-  step_dir = os.path.join(root, which, str(step))
+  step_dir, _, _ = locate_checkpoint(workdir, checkpoint)
   item = epath.Path(step_dir) / "default"
   device = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
   handler = ocp.StandardCheckpointHandler()
