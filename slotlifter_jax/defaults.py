@@ -61,10 +61,10 @@ def base_config() -> ml_collections.ConfigDict:
   # The decoder's cross-attention and point-slot mapping, and E_p's direction half, in a folded
   # order (folded.folded_cross_attention, folded.folded_mapping, model.PointEmbedding): the same
   # parameters and function to float32 rounding, 0.90× the `fast` step and 0.87× `quick`'s. Off:
-  # its rounding makes other trajectories, and the one `fast` run made with it (seed 0,
-  # 2026-12-03) split the scenes by step 30 000 and lost its floor over the release, which none
-  # of the README's seeds did (experiments/README.md, "Folded products"); whether that is the
-  # fold or the seed is not known.
+  # its rounding makes other trajectories, so the README's seed table (trained unfolded) would not
+  # repeat. The one `fast` run made with it (seed 0, 2026-12-03) lost its floor after step 30 000,
+  # but so did the unfolded order forked from that step (experiments/README.md, "Thirty-third
+  # round"); whether the folds change how often runs split is not measured.
   m.fold_products = False
   # Computation dtype: "float32", or "bfloat16" for bf16 matmuls and convolutions with float32
   # parameters, softmaxes, norm statistics, volume rendering and loss (model.py, "Numerics";
