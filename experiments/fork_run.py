@@ -86,9 +86,9 @@ def fork(src: str, dst: str, checkpoint: str = "latest") -> dict:
   step_dir, step, best = ckpt_lib.locate_checkpoint(src, checkpoint)
   with open(config_file) as f:
     config = json.load(f)
-  history_path = ckpt_lib.config_history_path(src)
-  history = [json.loads(line) for line in _jsonl_upto(history_path, sys.maxsize)]
-  history_lines = _jsonl_upto(history_path, step)
+  history_all = _jsonl_upto(ckpt_lib.config_history_path(src), sys.maxsize)
+  history = [json.loads(line) for line in history_all]
+  history_lines = [line for line, r in zip(history_all, history) if int(r.get("step", 0)) <= step]
 
   # Build the fork beside its destination and move it into place at the end, so an interrupted
   # fork leaves no folder that looks like a run.

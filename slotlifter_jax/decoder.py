@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from slotlifter_jax.encoder import torch_default_bias_init, torch_default_kernel_init
-from slotlifter_jax.folded import CrossAttention, LinearParams, folded_mapping
+from slotlifter_jax.folded import CrossAttention, LinearParams, folded_mapping, xavier
 
 # PyTorch's LayerNorm default, kept to match the official model.
 LAYER_NORM_EPS = 1e-5
@@ -193,10 +193,6 @@ def dropout_rates(num_blocks: int, max_rate: float) -> np.ndarray:
 # Modules.
 
 
-def _xavier(gain: float = 1.0):
-  return nn.initializers.variance_scaling(gain * gain, "fan_avg", "uniform")
-
-
 class MultiHeadAttention(nn.Module):
   """Official `MultiHeadAttention`: biased q, k, v projections to `proj_dim`, `num_heads` heads,
   output projection to `out_dim` initialised with gain `out_gain`."""
@@ -210,14 +206,14 @@ class MultiHeadAttention(nn.Module):
   def __call__(self, queries: jax.Array, keys_values: jax.Array) -> jax.Array:
     """queries [..., T, Cq], keys_values [..., L, Ckv] (same leading dims) → [..., T, out_dim]."""
     h, dh = self.num_heads, self.proj_dim // self.num_heads
-    dense = lambda name: nn.Dense(self.proj_dim, kernel_init=_xavier(), dtype=self.dtype,
+    dense = lambda name: nn.Dense(self.proj_dim, kernel_init=xavier(), dtype=self.dtype,
                                   name=name)
     q = dense("query")(queries).reshape(queries.shape[:-1] + (h, dh))  # [..., T, H, dh]
     k = dense("key")(keys_values).reshape(keys_values.shape[:-1] + (h, dh))  # [..., L, H, dh]
     v = dense("value")(keys_values).reshape(keys_values.shape[:-1] + (h, dh))
     out = dot_product_attention(q=q, k=k, v=v)  # [..., T, H, dh]
     out = out.reshape(out.shape[:-2] + (self.proj_dim,))
-    return nn.Dense(self.out_dim, kernel_init=_xavier(self.out_gain), dtype=self.dtype,
+    return nn.Dense(self.out_dim, kernel_init=xavier(self.out_gain), dtype=self.dtype,
                     name="out")(out)
 
 
@@ -261,7 +257,7 @@ class AllocationBlock(nn.Module):
     y = ln("ffn_norm")(x)
     y = nn.relu(nn.Dense(self.ffn_dim, kernel_init=nn.initializers.he_uniform(),
                          dtype=self.dtype, name="ffn_in")(y))
-    y = nn.Dense(c, kernel_init=_xavier(self.out_gain), dtype=self.dtype, name="ffn_out")(y)
+    y = nn.Dense(c, kernel_init=xavier(self.out_gain), dtype=self.dtype, name="ffn_out")(y)
     # A block whose rate is statically 0 (the first, unscanned) draws no random bits at all.
     if self.train and not (isinstance(rate, float) and rate == 0.0):
       x, y = paired_dropout(x, y, rate=rate, key=key)
@@ -354,7 +350,7 @@ class SlotDecoder(nn.Module):
     """point_features F_p [B, R, S, C], slots [B, K, Ds], points [B, R, S, 3]; `locality` a
     (traced) bool scalar switching the locality constraint."""
     b, _, ds = slots.shape
-    dense = lambda width, name: nn.Dense(width, kernel_init=_xavier(), dtype=self.dtype,
+    dense = lambda width, name: nn.Dense(width, kernel_init=xavier(), dtype=self.dtype,
                                          name=name)
     empty = self.param("empty_slot", _empty_slot_init, (ds,))
     slots_all = jnp.concatenate(
@@ -369,7 +365,7 @@ class SlotDecoder(nn.Module):
                                    enabled=locality, floor_z=self.locality_floor_z)
     if self.fold_products:
       # The same A and F_s with the per-point Linears folded into per-scene ones.
-      linear = lambda width, name: LinearParams(width, _xavier(), name=name)
+      linear = lambda width, name: LinearParams(width, xavier(), name=name)
       logits, weights, features = folded_mapping(
           h=h, slots=slots_all, query=linear(self.width, "map_query")(self.width),
           key=linear(self.width, "map_key")(ds), out=linear(self.width, "map_out")(ds),
@@ -412,6 +408,6 @@ class ColourMLP(nn.Module):
       x = nn.Dense(self.hidden, kernel_init=nn.initializers.he_uniform(), dtype=self.dtype,
                    name=f"hidden_{i}")(x)
       x = nn.leaky_relu(x, negative_slope=LEAKY_SLOPE)
-    raw = nn.Dense(3, kernel_init=_xavier(), dtype=self.dtype, name="out")(x)
+    raw = nn.Dense(3, kernel_init=xavier(), dtype=self.dtype, name="out")(x)
     # tanh in float32: near 1 a bfloat16 colour would be rounded to steps of 2^-8.
     return colour_activation(raw.astype(jnp.float32), mode=self.colour_range)
