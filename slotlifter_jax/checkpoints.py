@@ -21,6 +21,7 @@ import orbax.checkpoint as ocp
 from etils import epath
 
 from slotlifter_jax import averaging
+from slotlifter_jax import schedules
 from slotlifter_jax import train_step as step_lib
 from slotlifter_jax.data.types import Scene
 
@@ -209,6 +210,15 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
   if averaging.enabled(a) != averaging.enabled(b):
     diffs.append(f"train.ema_decay: saved {a.get('ema_decay')!r}, requested "
                  f"{b.get('ema_decay')!r} (the average is on in one and off in the other)")
+  # Slot attention has an optimiser group of its own only at a scale other than 1 (train_step.py).
+  saved_group = schedules.has_slot_attention_group(a)
+  if saved_group != schedules.has_slot_attention_group(b):
+    why = ("the checkpoint holds slot attention's own optimiser group, which a scale of 1 drops; "
+           "a scale near 1 such as 1.0001 keeps it" if saved_group else
+           "the checkpoint has no optimiser group of slot attention's own, which a scale other "
+           "than 1 needs")
+    diffs.append(f"train.slot_attention_lr_scale: saved {a.get('slot_attention_lr_scale')!r}, "
+                 f"requested {b.get('slot_attention_lr_scale')!r} ({why})")
   if diffs:
     raise CheckpointMismatchError(
         f"{where}: the run in this directory was made with another model config:\n  "

@@ -145,6 +145,37 @@ def test_slot_attention_follows_the_backbone_rate_times_its_scale():
   assert set(jax.tree.leaves(train_step.param_groups(params))) == {"head", "backbone"}
 
 
+def test_a_resume_that_would_drop_or_add_slot_attentions_group_refuses_naming_the_field():
+  """The optimiser state has slot attention's group exactly when the scale is not 1, so a resume
+  may move the scale between values other than 1 (the state trees are equal) but not across 1
+  (they differ): check_compatible refuses that case in one line per direction, before restoring."""
+  import json
+  import jax
+  import jax.numpy as jnp
+  from slotlifter_jax import checkpoints, train_step
+
+  params = {"colour_mlp": {"w": jnp.arange(5.0)}, "encoder": {"w": -jnp.arange(3.0)},
+            "slot_attention": {"w": jnp.array([0.5, -2.0])}}
+  def run_config(scale):
+    config = defaults.base_config()
+    config.train.slot_attention_lr_scale = scale
+    return config
+  def state_structure(scale):
+    return jax.tree.structure(train_step.make_optimizer(run_config(scale).train).init(params))
+  saved = json.loads(run_config(2.0).to_json_best_effort())
+  assert state_structure(1.0001) == state_structure(2.0)
+  checkpoints.check_compatible(run_config(1.0001), saved, "run")  # no error
+  assert state_structure(1.0) != state_structure(2.0)
+  with pytest.raises(checkpoints.CheckpointMismatchError,
+                     match=r"train.slot_attention_lr_scale: saved 2.0, requested 1.0 \(the "
+                           r"checkpoint holds slot attention's own optimiser group"):
+    checkpoints.check_compatible(run_config(1.0), saved, "run")
+  with pytest.raises(checkpoints.CheckpointMismatchError,
+                     match=r"saved 1.0, requested 0.5 \(the checkpoint has no optimiser group"):
+    checkpoints.check_compatible(run_config(0.5), json.loads(run_config(1.0).to_json_best_effort()),
+                                 "run")
+
+
 @pytest.mark.parametrize("t, expected", [
     (0, 1.0), (49_999, 1.0),  # full rate until the cooldown starts…
     (50_000, 1.0),  # …and the cosine starts at 1: no jump
