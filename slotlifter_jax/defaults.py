@@ -170,6 +170,11 @@ def base_config() -> ml_collections.ConfigDict:
   # while the gain in FG-ARI over 5e-5 comes from the decoder (experiments/README.md,
   # "Eighteenth round").
   t.slot_attention_lr_scale = 1.0
+  # Not in the paper: the scale holds for the first N steps, then slot attention follows the
+  # backbone's rate (0: throughout). Forked from a split state at step 30 000, the scale of 2 lost
+  # the floor within 6000 steps where 1 kept it (experiments/README.md, "Thirty-fourth round").
+  # Slot attention keeps its optimiser group either way, so a resume may change this field.
+  t.slot_attention_lr_scale_steps = 0
   # "lion" (paper) or "adamw" (Lion moves every weight by ±lr each step whatever the gradient's
   # size; AdamW was tried for the small quick batch and fitted one scene no faster: README).
   t.optimizer = "lion"

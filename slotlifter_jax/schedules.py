@@ -61,8 +61,13 @@ def has_slot_attention_group(train_config) -> bool:
 
 
 def slot_attention_lr(t, train_config):
-  """Slot attention's learning rate at step t: the backbone's times `slot_attention_lr_scale`."""
-  return backbone_lr(t, train_config) * train_config.get("slot_attention_lr_scale", 1.0)
+  """Slot attention's learning rate at step t: the backbone's times `slot_attention_lr_scale` for
+  the first `slot_attention_lr_scale_steps` steps (0: throughout), then the backbone's."""
+  scale = train_config.get("slot_attention_lr_scale", 1.0)
+  steps = train_config.get("slot_attention_lr_scale_steps", 0)
+  if steps > 0:
+    scale = jnp.where(jnp.asarray(t) < steps, scale, 1.0)
+  return backbone_lr(t, train_config) * scale
 
 
 def _cosine_to_zero(t, steps: int):
