@@ -8,6 +8,11 @@ the `*_val_metrics.jsonl` copies in experiments/results/. One panel per key agai
 line per run; a run that logged no value of a key is left out of that panel. Prints, per key, a
 markdown table of the validations (a step per row, a run per column; – where a run has no
 validation at that step). plot_curves.py draws one run with its schedules and wall time.
+
+  --loss_windows=N --from_step=S also prints the mean training loss over the windows (w, w + N]
+  from step S on, a run per column, for the runs whose file holds training records (a run
+  folder's metrics.jsonl; the committed `*_val_metrics.jsonl` copies hold validations only).
+  Validation on 20 scenes is noisy; the training loss shows when a run's fit changed.
 """
 
 from __future__ import annotations
@@ -35,6 +40,10 @@ def parse_args(argv=None):
   p.add_argument("--keys", default=",".join(emergence.CURVE_KEYS),
                  help="validation metrics to draw, comma-separated")
   p.add_argument("--out", required=True, help="the PNG to write")
+  p.add_argument("--loss_windows", type=int, default=0, metavar="N",
+                 help="also print the mean training loss per window of N steps (0: no)")
+  p.add_argument("--from_step", type=int, default=0, metavar="S",
+                 help="--loss_windows: the first window starts after step S")
   return p.parse_args(argv)
 
 
@@ -90,6 +99,31 @@ def table(curves: dict[str, dict], key: str) -> list[str]:
   return lines
 
 
+def loss_windows(runs: list[tuple[str, str]], size: int, from_step: int) -> list[str]:
+  """A markdown table of each run's mean training `loss` over the windows (w, w + size], w =
+  from_step, from_step + size, …; a step logged twice (a resumed run) counts once, as its later
+  record. Runs without training records are left out; none at all is an error."""
+  means = {}
+  for label, path in runs:
+    by_step = {r["step"]: r["loss"] for r in emergence.load_records(path)
+               if r["kind"] == "train" and "loss" in r and r["step"] > from_step}
+    if not by_step:
+      continue
+    sums: dict[int, list[float]] = {}
+    for step, loss in by_step.items():
+      sums.setdefault(from_step + (step - from_step - 1) // size * size, []).append(loss)
+    means[label] = {w: sum(v) / len(v) for w, v in sums.items()}
+  if not means:
+    raise SystemExit(f"error: --loss_windows: no run has training records after step {from_step}")
+  windows = sorted({w for m in means.values() for w in m})
+  lines = [f"mean training loss per {size} steps", "",
+           "| steps | " + " | ".join(means) + " |", "|---" * (len(means) + 1) + "|"]
+  for w in windows:
+    cells = [f"{m[w]:.4f}" if w in m else "–" for m in means.values()]
+    lines.append(f"| {w + 1}–{w + size} | " + " | ".join(cells) + " |")
+  return lines
+
+
 def plot(curves: dict[str, dict], keys: list[str], out: str) -> None:
   fig, axes = plt.subplots(1, len(keys), figsize=(3.6 * len(keys), 3.2), squeeze=False)
   for ax, key in zip(axes[0], keys):
@@ -112,9 +146,14 @@ def main(argv=None) -> None:
   keys = [k for k in args.keys.split(",") if k]
   if not keys:
     raise SystemExit("error: --keys: no metric named")
-  curves = load(_runs(args.run), keys)
+  if args.loss_windows < 0 or args.from_step < 0:
+    raise SystemExit("error: --loss_windows and --from_step must be ≥ 0")
+  runs = _runs(args.run)
+  curves = load(runs, keys)
   for key in keys:
     print("\n".join(table(curves, key)), end="\n\n")
+  if args.loss_windows:
+    print("\n".join(loss_windows(runs, args.loss_windows, args.from_step)), end="\n\n")
   plot(curves, keys, args.out)
   print(f"wrote {args.out}")
 

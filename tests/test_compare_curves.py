@@ -70,3 +70,35 @@ def test_bad_input_is_a_one_line_error_naming_what_is_wrong(tmp_path):
   bad.write_text('{"step": 1, "kind": "val"}\nnot json\n{"step": 2, "kind": "val"}\n')
   r = _run(f"--run=a={bad}", f"--out={out}")
   assert r.returncode != 0 and "bad.jsonl line 2" in r.stderr.strip().splitlines()[-1]
+
+
+def test_loss_windows_average_each_runs_training_loss_per_window(tmp_path):
+  """Windows (w, w + N] from --from_step on, means by hand; a step logged twice (a resumed run)
+  counts once, as its later record; a file of validations only is left out of the table."""
+  run_dir = tmp_path / "fork"
+  run_dir.mkdir()
+  _write(run_dir / "metrics.jsonl", [
+      {"step": 100, "kind": "train", "time": 0.0, "loss": 9.0},  # at --from_step: not counted
+      {"step": 150, "kind": "train", "time": 1.0, "loss": 0.5},
+      {"step": 200, "kind": "train", "time": 2.0, "loss": 0.25},
+      {"step": 200, "kind": "val", "time": 3.0, "fg_ari": 0.5},
+      {"step": 250, "kind": "train", "time": 4.0, "loss": 4.0},
+      {"step": 250, "kind": "train", "time": 5.0, "loss": 1.0},  # resumed: this one counts
+      {"step": 300, "kind": "train", "time": 6.0, "loss": 2.0},
+      {"step": 400, "kind": "train", "time": 7.0, "loss": 0.125},
+      {"step": 400, "kind": "val", "time": 8.0, "fg_ari": 0.25},
+  ])
+  vals = tmp_path / "v.jsonl"
+  _write(vals, [{"step": 200, "kind": "val", "time": 1.0, "fg_ari": 0.75}])
+  r = _run(f"--run=fork={run_dir}", f"--run=copy={vals}", "--keys=fg_ari",
+           f"--out={tmp_path / 'c.png'}", "--loss_windows=100", "--from_step=100")
+  assert r.returncode == 0, r.stderr
+  text = r.stdout.split("mean training loss per 100 steps")[1]
+  assert "| steps | fork |" in text and "copy" not in text
+  assert "| 101–200 | 0.3750 |" in text  # (0.5 + 0.25) / 2
+  assert "| 201–300 | 1.5000 |" in text  # (1.0 + 2.0) / 2, the resumed record at 250
+  assert "| 301–400 | 0.1250 |" in text
+  r = _run(f"--run=copy={vals}", "--keys=fg_ari", f"--out={tmp_path / 'c.png'}",
+           "--loss_windows=100")
+  assert r.returncode != 0
+  assert r.stderr.strip() == "error: --loss_windows: no run has training records after step 0"
