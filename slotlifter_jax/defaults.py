@@ -171,8 +171,9 @@ def base_config() -> ml_collections.ConfigDict:
   # "Eighteenth round").
   t.slot_attention_lr_scale = 1.0
   # Not in the paper: the scale holds for the first N steps, then slot attention follows the
-  # backbone's rate (0: throughout). Forked from a split state at step 30 000, the scale of 2 lost
-  # the floor within 6000 steps where 1 kept it (experiments/README.md, "Thirty-fourth round").
+  # backbone's rate (0: throughout). A probe of the late loss of the floor: from one run's split
+  # state at step 30 000, 1× held the floor to step 38 000 in one summation order and did not
+  # hold it through the release in the other (experiments/README.md, "Thirty-fourth round").
   # Slot attention keeps its optimiser group either way, so a resume may change this field.
   t.slot_attention_lr_scale_steps = 0
   # "lion" (paper) or "adamw" (Lion moves every weight by ±lr each step whatever the gradient's
