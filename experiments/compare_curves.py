@@ -67,16 +67,24 @@ def _logged(curve: dict, key: str) -> bool:
   return not all(math.isnan(v) for v in curve[key])
 
 
-def load(runs: list[tuple[str, str]], keys: list[str]) -> dict[str, dict]:
-  """{label: emergence.curves(...)} with the given keys; a one-line error for an unreadable file
-  or a key that no run logged."""
+def read(runs: list[tuple[str, str]]) -> dict[str, list[dict]]:
+  """{label: the records of its file}; a one-line error for an unreadable file."""
   out = {}
   for label, path in runs:
     try:
-      records = emergence.load_records(path)
+      out[label] = emergence.load_records(path)
     except (ValueError, OSError) as e:
       raise SystemExit(f"error: {e}") from None
-    out[label] = emergence.curves(records, keys)
+  return out
+
+
+def load(runs: list[tuple[str, str]], records: dict[str, list[dict]],
+         keys: list[str]) -> dict[str, dict]:
+  """{label: emergence.curves(...)} with the given keys; a one-line error for a run without
+  validations or a key that no run logged."""
+  out = {}
+  for label, path in runs:
+    out[label] = emergence.curves(records[label], keys)
     if not out[label]["step"].size:
       raise SystemExit(f"error: {path}: no validation records")
   for key in keys:
@@ -99,13 +107,13 @@ def table(curves: dict[str, dict], key: str) -> list[str]:
   return lines
 
 
-def loss_windows(runs: list[tuple[str, str]], size: int, from_step: int) -> list[str]:
+def loss_windows(records: dict[str, list[dict]], size: int, from_step: int) -> list[str]:
   """A markdown table of each run's mean training `loss` over the windows (w, w + size], w =
   from_step, from_step + size, …; a step logged twice (a resumed run) counts once, as its later
   record. Runs without training records are left out; none at all is an error."""
   means = {}
-  for label, path in runs:
-    by_step = {r["step"]: r["loss"] for r in emergence.load_records(path)
+  for label, rows in records.items():
+    by_step = {r["step"]: r["loss"] for r in rows
                if r["kind"] == "train" and "loss" in r and r["step"] > from_step}
     if not by_step:
       continue
@@ -149,11 +157,12 @@ def main(argv=None) -> None:
   if args.loss_windows < 0 or args.from_step < 0:
     raise SystemExit("error: --loss_windows and --from_step must be ≥ 0")
   runs = _runs(args.run)
-  curves = load(runs, keys)
+  records = read(runs)
+  curves = load(runs, records, keys)
   for key in keys:
     print("\n".join(table(curves, key)), end="\n\n")
   if args.loss_windows:
-    print("\n".join(loss_windows(runs, args.loss_windows, args.from_step)), end="\n\n")
+    print("\n".join(loss_windows(records, args.loss_windows, args.from_step)), end="\n\n")
   plot(curves, keys, args.out)
   print(f"wrote {args.out}")
 
