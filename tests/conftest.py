@@ -46,9 +46,9 @@ import pytest  # noqa: E402
 # --no-loadscope-reorder so that xdist keeps this order.
 HEAVIEST_FIRST = (
     "test_train_resume.py", "test_train.py", "test_cli.py", "test_evaluate.py",
-    "test_distributed.py", "test_device_sampler.py", "test_model.py", "test_data_parallel.py",
-    "test_bf16.py", "test_decoder.py", "test_restarts.py", "test_fork_run.py", "test_averaging.py",
-    "test_adaptive.py", "test_study.py",
+    "test_distributed.py", "test_device_sampler.py", "test_model.py", "test_model_options.py",
+    "test_data_parallel.py", "test_bf16.py", "test_decoder.py", "test_restarts.py",
+    "test_fork_run.py", "test_averaging.py", "test_adaptive.py", "test_study.py",
 )
 
 

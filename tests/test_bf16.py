@@ -61,7 +61,7 @@ MIN_SLOT_MASS = 0.5
 MAX_FEATURE_DIFF = 2 * np.sqrt(12) * U_BF16
 MIN_FEATURE_DIFF = U_BF16 / 8
 # Compilation, not execution, is what these tests spend their time on: skip XLA's backend
-# optimisations (as tests/test_model.py does); it changes no dtype.
+# optimisations (as tests/tiny_model.py does); it changes no dtype.
 jit = functools.partial(jax.jit, compiler_options={"xla_backend_optimization_level": 0})
 
 
@@ -81,7 +81,7 @@ def setup():
   models = {"float32": model_lib.build_model(config32),
             "bfloat16": model_lib.build_model(config16)}
   batch = fake_batch(config32)
-  # 'rbg' keys: initialising compiles several times faster than with threefry (test_model.py).
+  # 'rbg' keys: initialising compiles several times faster than with threefry (tiny_model.py).
   state = step_lib.init_state(models["float32"], config32, batch, jax.random.key(0, impl="rbg"))
   return dict(configs={"float32": config32, "bfloat16": config16}, models=models, batch=batch,
               state=state)
