@@ -15,7 +15,9 @@ For each configuration, in a fresh process (so its peak memory is its own) that 
     the same process) and their ratio, the model FLOP utilisation (MFU);
   - the time to render one full 128×128 view (after its compilation), with the plain renderer.
 Results go to experiments/results/bench_<platform>.json (merged with what is there, so
-configurations can be measured in separate calls) and a table on stdout.
+configurations can be measured in separate calls) and a table on stdout. Each configuration's entry
+and the file carry a provenance record (config, git commit, CPU or GPU, jax version, wall time;
+slotlifter_jax/provenance.py).
 
 With --allocators every configuration is measured once per allocator (SLOTLIFTER_ALLOCATOR,
 slotlifter_jax/runtime.py: system = glibc malloc, mimalloc from the cmeel-mimalloc wheel, tcmalloc
@@ -64,6 +66,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
 from slotlifter_jax import runtime  # noqa: E402  (no JAX import)
+from slotlifter_jax import provenance  # noqa: E402  (no JAX import)
 from experiments import bench_common  # noqa: E402
 from experiments.bench_common import CONFIGS  # noqa: E402
 
@@ -249,7 +252,11 @@ def _table(rows: list[dict]) -> str:
 def main(argv):
   del argv
   if FLAGS.worker:
+    t0 = time.perf_counter()
     result = measure(FLAGS.worker, FLAGS.steps, FLAGS.render_repeats, FLAGS.worker_dtype)
+    # The configuration as measured, the commit, the machine and this worker's wall time.
+    result[provenance.KEY] = provenance.collect(
+        bench_common.config(FLAGS.worker, FLAGS.worker_dtype), wall_s=time.perf_counter() - t0)
     with open(FLAGS.worker_json, "w") as f:
       json.dump(result, f)
     return
@@ -257,6 +264,7 @@ def main(argv):
   if unknown:
     raise app.UsageError(f"unknown configs {unknown}; choose from {sorted(CONFIGS)}")
   runtime.set_xla_flags()
+  t_start = time.perf_counter()
   info = _platform_info()
   os.makedirs(FLAGS.out, exist_ok=True)
   out_path = os.path.join(FLAGS.out, f"bench_{info['platform']}.json")
@@ -309,7 +317,11 @@ def main(argv):
     rows.append(result)
     print(_table([result]).splitlines()[-1], flush=True)
     # After every configuration, so a call cut short (a lease's time limit) keeps what it measured.
-    emergence.write_json_atomically(out_path, dict(info, configs=previous))
+    # The file's own record: this call's commit, machine and wall time so far (each
+    # configuration carries its config in its own record).
+    emergence.write_json_atomically(out_path, dict(
+        info, configs=previous,
+        **{provenance.KEY: provenance.collect(wall_s=time.perf_counter() - t_start)}))
   print(_table(rows))
   print(f"[bench] wrote {out_path}" if rows else "[bench] nothing measured, nothing written")
 

@@ -6,6 +6,9 @@ from __future__ import annotations
 import os
 import sys
 
+# The CPU's model and vector extensions, which every benchmark records (slotlifter_jax/provenance.py).
+from slotlifter_jax.provenance import CPU_EXTENSIONS, cpu_info  # noqa: F401
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 _FAST_DEVICE = {"data.sampler": "device", "data.ray_sampling": "uniform"}
@@ -40,30 +43,6 @@ CONFIGS = {
     "quick_fold": dict(variant="quick", overrides={"model.fold_products": True}),
     "fast_fold": dict(variant="fast", overrides={"model.fold_products": True}),
 }
-
-
-# Vector and matrix extensions that change XLA:CPU's kernels, so the same step can take 2.4× as
-# long on two hosts of one cloud (experiments/README.md, "Train-step benchmark").
-CPU_EXTENSIONS = ("avx2", "fma", "avx512f", "avx512_bf16", "avx512_vnni", "amx_tile", "amx_bf16")
-
-
-def cpu_info(cpuinfo: str | None = None) -> dict:
-  """The CPU's model name and which of CPU_EXTENSIONS it has, from /proc/cpuinfo's text (read
-  when `cpuinfo` is None; empty on systems without it)."""
-  if cpuinfo is None:
-    try:
-      with open("/proc/cpuinfo", encoding="utf-8") as f:
-        cpuinfo = f.read()
-    except OSError:
-      cpuinfo = ""
-  fields = {}
-  for line in cpuinfo.splitlines():
-    key, sep, value = line.partition(":")
-    if sep and key.strip() not in fields:  # the first processor's entry
-      fields[key.strip()] = value.strip()
-  flags = set(fields.get("flags", "").split())
-  return dict(cpu_model=fields.get("model name", ""),
-              cpu_extensions=[e for e in CPU_EXTENSIONS if e in flags])
 
 
 def config(name: str, dtype: str | None = None):

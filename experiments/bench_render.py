@@ -45,6 +45,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
 from slotlifter_jax import runtime  # noqa: E402  (no JAX import)
+from slotlifter_jax import provenance  # noqa: E402  (no JAX import)
 from experiments import bench_common  # noqa: E402
 
 flags.DEFINE_string("workdir", "runs/clevr_quick", "A trained configs/clevr.py:quick run (the README's first command before `fast`).")
@@ -339,6 +340,7 @@ def quality_table(q: dict) -> str:
 
 def main(argv):
   del argv
+  t_start = time.perf_counter()
   import jax
   os.makedirs(FLAGS.out, exist_ok=True)
   platform = jax.devices()[0].platform
@@ -374,6 +376,10 @@ def main(argv):
       rows += time_group("quick", size, [_parse(quick_setting)], FLAGS.repeats)
     result["timing"] = dict(rows=rows, date=stamp(), plain_chunks=FLAGS.plain_chunks)
     print(timing_table(rows), flush=True)
+  # Commit, machine, jax version and wall time; the configs are the benchmark's "A" and "quick".
+  result[provenance.KEY] = provenance.collect(
+      {name: provenance.config_dict(bench_common.config(name)) for name in ("A", "quick")},
+      wall_s=time.perf_counter() - t_start)
   tmp = out_path + ".tmp"
   with open(tmp, "w") as f:
     json.dump(result, f, indent=1)

@@ -45,6 +45,7 @@ from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import metrics
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import multihost
+from slotlifter_jax import provenance
 from slotlifter_jax import regions
 from slotlifter_jax.checkpoints import EvalSetupError
 from slotlifter_jax.data import embedded
@@ -386,7 +387,8 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
                    params: str = "average") -> EvalResult:
   """`--mode=eval`: renders every view of every scene of `split` and writes the metrics.
 
-  Writes DIR/eval/<split>/metrics.json (summary, definitions, checkpoint, quirks, timing) and
+  Writes DIR/eval/<split>/metrics.json (summary, definitions, checkpoint, quirks, timing,
+  provenance) and
   per_scene.csv. Refuses (FileExistsError, before any work) to replace an existing metrics.json
   unless `overwrite`. See `load_run` for the other errors.
   """
@@ -475,6 +477,8 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
       "aggregation": AGGREGATION,
       "timing": timing,
       "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+      # Config, commit, machine, jax version and wall time (slotlifter_jax/provenance.py).
+      provenance.KEY: provenance.collect(run.config, wall_s=time.perf_counter() - t_start),
   }
   _atomic_write(metrics_path, json.dumps(report, indent=2, allow_nan=False) + "\n")
   return result
