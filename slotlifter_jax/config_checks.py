@@ -36,7 +36,8 @@ def check_config(config) -> None:
   train = config.train
   for problem in (masking_problem(train), rates_problem(train), selection_problem(train),
                   restarts_problem(train), averaging_problem(train), batch_problem(train),
-                  sampler_problem(config), data_problem(config.data)):
+                  sampler_problem(config), data_problem(config.data),
+                  labelled_check_problem(config)):
     if problem:
       raise ConfigError(problem)
   try:
@@ -47,6 +48,16 @@ def check_config(config) -> None:
     curriculum_stages(config.data.get("curriculum", ()))
   except ValueError as e:
     raise ConfigError(str(e)) from e
+
+
+def labelled_check_problem(config) -> Optional[str]:
+  """A set without masks has no ARI: the labelled early check would read made-up numbers."""
+  if (config.train.get("restart_signal", "auto") == "labelled"
+      and not bool(config.data.get("has_masks", True))
+      and int(config.train.get("restart_check_step", 0))):
+    return ("train.restart_signal='labelled' reads validation ARIs, but data.has_masks is False "
+            "(this set has no masks): use 'mask_free' or 'auto'")
+  return None
 
 
 def data_problem(data) -> Optional[str]:
@@ -107,6 +118,10 @@ def restarts_problem(train) -> Optional[str]:
             f"train.eval_every={train.eval_every}, a step that validates")
   if int(train.get("restarts", 0)) < 0:
     return f"train.restarts={train.restarts} must be ≥ 0"
+  signal = train.get("restart_signal", "auto")
+  if signal not in ("auto", "labelled", "mask_free"):
+    return (f"train.restart_signal={signal!r} must be 'auto', 'labelled' or 'mask_free' "
+            f"(slotlifter_jax/restarts.py)")
   return None
 
 

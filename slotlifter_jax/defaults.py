@@ -113,6 +113,9 @@ def base_config() -> ml_collections.ConfigDict:
   d.num_train_scenes = 1000
   d.num_val_scenes = 100
   d.num_test_scenes = 100
+  # Embedded generator only: the development split, the scenes that were the test split before a
+  # held-out one was drawn (data/layout.py, SPLITS). Probes may read it; no choice reads test.
+  d.num_dev_scenes = 100
   # Embedded generator only: objects per scene (0: the family's default, CLEVR 5–7, room 1–4) and
   # a factor on every CLEVR object's size (capped at 2 to fit the default footprint). An easy set,
   # e.g. 1–3 objects at 1.6×, tells a data problem from a model one; it gets its own cache folder.
@@ -214,6 +217,11 @@ def base_config() -> ml_collections.ConfigDict:
   t.restarts = 0
   t.restart_check_step = 0
   t.restart_min_score = 0.0
+  # Which early check: "labelled" (the selection score, needs masks), "mask_free" (slots in use on
+  # the validation views, `validation.mask_free_statistics`), or "auto": labelled when the
+  # validation scenes have masks, else mask-free (slotlifter_jax/restarts.py).
+  t.restart_signal = "auto"
+  t.restart_min_active_slots = 0.0
   t.log_every = 50
   t.eval_every = 5000
   t.eval_scenes = 8  # validation scenes used at each evaluation interval
@@ -312,6 +320,7 @@ def smoke(c):
   c.data.num_train_scenes = 4
   c.data.num_val_scenes = 2
   c.data.num_test_scenes = 2
+  c.data.num_dev_scenes = 2
   c.model.encoder_blocks = (1, 1, 1)
   c.model.encoder_widths = (8, 16, 16)
   c.model.encoder_stem_width = 8
@@ -449,6 +458,10 @@ def fast(c):
   in experiments/README.md, "Sixth round" to "Eighth round" and "Twenty-first round" to
   "Twenty-fifth round".
   """
+  if not tuple(c.data.get("scene_z_range", ())):
+    raise ValueError(f"variant 'fast' samples rays only inside data.scene_z_range, which this "
+                     f"config (data.format={c.data.format!r}, data.subset={c.data.subset!r}) "
+                     f"leaves empty: configs/clevr.py and configs/room_chair.py set it")
   c = quick(c)
   c.model.slot_dim = 32
   c.model.slot_mlp_dim = 64
@@ -481,6 +494,7 @@ def fast(c):
   c.train.restarts = 2
   c.train.restart_check_step = 14_000
   c.train.restart_min_score = 0.55
+  c.train.restart_min_active_slots = 3.0
   c.train.log_every = 50
   c.train.eval_every = 2000
   c.train.eval_scenes = 20

@@ -30,7 +30,8 @@ flags.DEFINE_integer("num_processes", None, "--distributed: number of processes 
                      "detected by jax, e.g. under SLURM).")
 flags.DEFINE_integer("process_id", None, "--distributed: this process's index, 0 … N−1 "
                      "(default: detected by jax).")
-flags.DEFINE_enum("split", "test", ["train", "val", "test"], "eval/render: which split.")
+flags.DEFINE_enum("split", "test", ["train", "val", "dev", "test"], "eval/render: which split "
+                  "(dev: the embedded sets' development split; test: held out).")
 flags.DEFINE_string("checkpoint", "", "eval/render: best, latest or a step (default: best if "
                     "the run has one, else latest).")
 flags.DEFINE_bool("overwrite", False, "eval: replace an existing DIR/eval/<split>/metrics.json.")

@@ -2,11 +2,16 @@
 
 Two triggers, both read from the validation that just ran:
 - collapse (`slotlifter_jax/collapse.py`), once the masking and slot-noise schedules have settled;
-- a selection score (`train.select_by`) below `train.restart_min_score` at the validation of
-  step `train.restart_check_step`. On the embedded clevr set the worse of validation FG-ARI and
-  NV-ARI at step 14 000 already separates the seeds that end split from those that do not
-  (experiments/README.md, "Twentieth round"); like `select_by`, this is model selection on the
-  validation split, never the test split, and training still sees only the photometric loss.
+- the early check at the validation of step `train.restart_check_step`, by `train.restart_signal`:
+  - "labelled": the selection score (`train.select_by`) below `train.restart_min_score`. On the
+    embedded clevr set the worse of validation FG-ARI and NV-ARI at step 14 000 already separates
+    the seeds that end split from those that do not (experiments/early_check.py);
+  - "mask_free": fewer than `train.restart_min_active_slots` slots in use on the validation views
+    (`validation.mask_free_statistics`), read from the model's outputs alone, for sets without
+    masks (a capture, the kitchens), which have no ARI to read;
+  - "auto" (default): "labelled" when the validation scenes have masks, else "mask_free".
+Like `select_by`, this is model selection on the validation split, never the test split, and
+training still sees only the photometric loss.
 
 An abandoned attempt is moved, never deleted, to DIR/restarted/seed_<s>/, and the next attempt
 trains from seed s + SEED_STRIDE in the emptied run folder, so that the attempts of one seed
@@ -20,6 +25,7 @@ import os
 from typing import Optional
 
 import ml_collections
+import numpy as np
 from absl import logging
 
 from slotlifter_jax import checkpoints as ckpt_lib
@@ -32,13 +38,34 @@ ATTEMPT_FILES = ("checkpoints", "metrics.jsonl", "tb", "val", "config.json", "em
 SEED_STRIDE = 1000
 
 
-def reason(train_config, step: int, val: dict) -> Optional[str]:
-  """Why the validation `val` of step `step` calls for a new seed, or None."""
+RESTART_SIGNALS = ("auto", "labelled", "mask_free")
+
+
+def check_signal(train_config, *, has_masks: bool) -> str:
+  """The early check `train.restart_signal` resolves to: "labelled" or "mask_free"."""
+  signal = train_config.get("restart_signal", "auto")
+  if signal == "auto":
+    return "labelled" if has_masks else "mask_free"
+  return signal
+
+
+def reason(train_config, step: int, val: dict, *, has_masks: bool = True) -> Optional[str]:
+  """Why the validation `val` of step `step` calls for a new seed, or None. `has_masks`: whether
+  the validation scenes have ground-truth masks (the labelled check needs them)."""
   if val.get("collapsed") == 1.0 and step >= collapse.settled_step(train_config):
     return "collapsed"
   check = int(train_config.get("restart_check_step", 0))
+  if not check or step != check:
+    return None
+  if check_signal(train_config, has_masks=has_masks) == "mask_free":
+    need = float(train_config.get("restart_min_active_slots", 0.0))
+    used = float(val.get("mf_active_slots", np.nan))
+    if not used >= need:  # NaN (no novel view) restarts too: nothing says the run split
+      return (f"{used:.2f} slots in use on the validation views < "
+              f"train.restart_min_active_slots={need} at step {check} (mask-free check)")
+    return None
   floor = float(train_config.get("restart_min_score", 0.0))
-  if check and step == check and val["score"] < floor:
+  if val["score"] < floor:
     return (f"selection score ({train_config.get('select_by', 'nv_ari')}) {val['score']:.3f} "
             f"< train.restart_min_score={floor} at step {check}")
   return None

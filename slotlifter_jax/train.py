@@ -311,7 +311,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
                             last_val.get("probe_largest_share", np.nan),
                             last_val.get("probe_active_slots", np.nan))
           if config.train.restarts > 0:
-            restart = restarts.reason(config.train, done, last_val)
+            restart = restarts.reason(config.train, done, last_val,
+                                      has_masks=validator.has_masks)
             if restart:
               break
         if done % config.train.checkpoint_every == 0 or done == total:

@@ -16,6 +16,7 @@ import numpy as np
 from slotlifter_jax import collapse
 from slotlifter_jax import config_checks
 from slotlifter_jax import evaluate
+from slotlifter_jax import metrics
 from slotlifter_jax import schedules
 from slotlifter_jax import vis
 from slotlifter_jax.data.types import Scene
@@ -40,6 +41,30 @@ def collapse_statistics(*, segmentation, rendered, target, foreground=None) -> d
       collapse_near_uniform=float(verdict.near_uniform), collapse_black=float(verdict.black),
       probe_largest_share=mean(usage.largest_share), probe_active_slots=mean(usage.active_slots),
       probe_pixel_entropy=mean(usage.pixel_entropy))
+
+
+def mask_free_statistics(*, novel_segmentation, source_segmentation,
+                         source_attention) -> dict[str, float]:
+  """How the model splits its validation scenes, from its own outputs only: no mask is read, so
+  a set without ground truth (a capture, the kitchens) gets the same numbers as one with it.
+
+  novel_segmentation [n, N, K] rendered on the novel views, source_segmentation [m, N, K] rendered
+  on the source views, source_attention [m, N] int: slot attention's slot per source pixel.
+  Returns, over every pixel (the background slot counts as one slot):
+  - mf_active_slots: slots owning ≥ 1 % of a novel view's pixels, mean over views; a run that puts
+    the scene in one or two slots has not split it, whatever its colours;
+  - mf_largest_share: the largest slot's share of a novel view's pixels, mean over views;
+  - mf_pixel_entropy: the mean per-pixel slot entropy / log K (1: every pixel shared evenly);
+  - mf_attn_agreement: ARI between the decoder's split of the source view and slot attention's
+    grouping of it, mean over source views: the two agree once the rendered slots are the groups
+    slot attention found.
+  """
+  usage = collapse.slot_usage(segmentation=novel_segmentation, foreground_mask=None)
+  rendered_labels = np.argmax(np.asarray(source_segmentation), axis=-1)
+  agreement = metrics.ari(true_labels=np.asarray(source_attention), pred_labels=rendered_labels)
+  mean = lambda x: float(np.mean(np.asarray(x, np.float64)))
+  return dict(mf_active_slots=mean(usage.active_slots), mf_largest_share=mean(usage.largest_share),
+              mf_pixel_entropy=mean(usage.pixel_entropy), mf_attn_agreement=mean(agreement))
 
 
 def selection_score(result: dict, select_by: str, *, has_masks: bool) -> float:
@@ -84,6 +109,7 @@ class Validator:
     locality = bool(schedules.locality_on(step, steps=self.locality_steps))
     per_scene, rows = [], []
     probe_seg, probe_fg, probe_rgb, probe_target = [], [], [], []
+    source_seg, source_attn = [], []
     for n, scene in enumerate(self.scenes):
       views = list(range(scene.num_views))
       rendered = self.renderer.render(params, scene, views, locality=locality)
@@ -96,6 +122,10 @@ class Validator:
                                                              rendered.segmentation.shape[-1]))
       probe_rgb.append(rendered.colour[novel].reshape(len(novel), -1, 3))
       probe_target.append(scene.images[novel].reshape(len(novel), -1, 3))
+      src = list(scene.source_indices)
+      source_seg.append(rendered.segmentation[src].reshape(len(src), -1,
+                                                           rendered.segmentation.shape[-1]))
+      source_attn.append(np.asarray(rendered.source_labels).reshape(len(src), -1))
       if self.has_masks:
         probe_fg.append((scene.masks[novel] > 0).reshape(len(novel), -1))
       if n < self.num_pictures:
@@ -112,6 +142,11 @@ class Validator:
           segmentation=np.concatenate(probe_seg), rendered=np.concatenate(probe_rgb),
           target=np.concatenate(probe_target),
           foreground=np.concatenate(probe_fg) if self.has_masks else None))
+    if source_seg:
+      result.update(mask_free_statistics(
+          novel_segmentation=np.concatenate(probe_seg),
+          source_segmentation=np.concatenate(source_seg),
+          source_attention=np.concatenate(source_attn)))
     result["score"] = selection_score(result, self.select_by, has_masks=self.has_masks)
     if rows and self.write_pictures:
       vis.save_png(os.path.join(self.workdir, "val", f"step_{step:07d}.png"), vis.grid(rows))

@@ -29,6 +29,12 @@ def load(path: str, variant: str = ""):
                          ids=os.path.basename)
 @pytest.mark.parametrize("variant", ["", "quick", "fast", "smoke", "fast+easy"])
 def test_every_shipped_config_passes(path, variant):
+  if "fast" in variant and os.path.basename(path) not in ("clevr.py", "room_chair.py"):
+    # fast samples only inside the scene's slab, which only these sets measure: refused, never
+    # silently run over the whole ray.
+    with pytest.raises(ValueError, match="data.scene_z_range"):
+      load(path, variant)
+    return
   config_checks.check_config(load(path, variant))
 
 

@@ -157,7 +157,7 @@ def test_deterministic_and_independent_of_workers(clevr_root, tmp_path):
   # Two worker processes render the scenes in another order: the bytes must not change.
   generate_small(tmp_path, "clevr", num_workers=2)
   first, second = _hash_tree(clevr_root), _hash_tree(tmp_path)
-  assert len(first) == 3 + (2 + 1 + 1) * 4 * 5  # 3 dataset.json + 5 files per view
+  assert len(first) == 4 + (2 + 1 + 1 + 1) * 4 * 5  # 4 dataset.json + 5 files per view
   assert first == second
 
 

@@ -135,7 +135,9 @@ def test_cache_name_changes_only_for_non_default_object_options():
   from slotlifter_jax.data import embedded
   d = defaults.base_config().data
   default_name = os.path.basename(embedded.dataset_dir(d, seed=0))
-  assert default_name == "clevr-v1-128px-4v-1000-100-100-s0"  # the name before the options
+  # train-val-dev-test counts: a folder made before the held-out test split (three counts) holds
+  # another test split and must never be taken for this one.
+  assert default_name == "clevr-v1-128px-4v-1000-100-100-100-s0"
   old = d.to_dict()  # a config saved before the fields existed
   for k in ("min_objects", "max_objects", "object_scale"):
     del old[k]

@@ -137,3 +137,66 @@ def test_a_run_stopped_between_two_attempts_goes_on_with_the_next_seed(tmp_path)
   assert (resumed.seed, resumed.train.restarts) == (restarts.SEED_STRIDE, 1)
   # No attempt archived: the command line's config as it is.
   assert restarts.resumed_seed(config, None, str(tmp_path / "fresh")) is config
+
+
+def test_mask_free_statistics_on_a_hand_built_split():
+  import numpy as np
+  from sklearn.metrics import adjusted_rand_score
+  k, n = 4, 200
+  one_hot = lambda labels: np.eye(k, dtype=np.float32)[labels]
+  # Novel view 0: slot 0 holds 180 pixels, slot 1 holds 18, slot 2 holds 2 (1 %, active), slot 3
+  # none; view 1: slot 2 holds everything.
+  view0 = np.array([0] * 180 + [1] * 18 + [2] * 2)
+  view1 = np.full(n, 2)
+  source = np.array([0] * 100 + [1] * 60 + [3] * 40)
+  attention = np.array([2] * 100 + [0] * 60 + [0] * 40)  # merges slots 1 and 3 of the render
+  stats = validation.mask_free_statistics(
+      novel_segmentation=one_hot(np.stack([view0, view1])),
+      source_segmentation=one_hot(source[None]), source_attention=attention[None])
+  assert stats["mf_active_slots"] == pytest.approx((3 + 1) / 2)
+  assert stats["mf_largest_share"] == pytest.approx((0.9 + 1.0) / 2)
+  assert stats["mf_pixel_entropy"] == pytest.approx(0.0, abs=1e-6)  # one-hot pixels
+  assert stats["mf_attn_agreement"] == pytest.approx(adjusted_rand_score(attention, source))
+  # A relabelled copy of the same grouping agrees exactly.
+  same = validation.mask_free_statistics(
+      novel_segmentation=one_hot(view0[None]), source_segmentation=one_hot(source[None]),
+      source_attention=((source + 1) % k)[None])
+  assert same["mf_attn_agreement"] == pytest.approx(1.0)
+
+
+def test_mask_free_check_on_a_constructed_metrics_log():
+  config = load_config()
+  t = config.train
+  t.restarts, t.restart_check_step, t.restart_min_score = 2, 6, 0.55
+  t.restart_min_active_slots = 3.0
+  t.noise_anneal_steps = t.mask_anneal_steps = 100  # the collapse flag does not count yet
+  # A log as a mask-free set's validation writes it: no ARI, PSNR as the score.
+  log = [{"step": 3, "score": 18.0, "mf_active_slots": 1.5, "collapsed": 1.0},
+         {"step": 6, "score": 19.0, "mf_active_slots": 2.4, "collapsed": 1.0},
+         {"step": 9, "score": 19.5, "mf_active_slots": 1.0, "collapsed": 1.0}]
+  decide = lambda val, **kw: restarts.reason(t, val["step"], val, **kw)
+  # Only the check step decides, and without masks "auto" reads the slots in use.
+  assert [decide(v, has_masks=False) is not None for v in log] == [False, True, False]
+  assert "mask-free" in decide(log[1], has_masks=False)
+  assert decide(dict(log[1], mf_active_slots=3.4), has_masks=False) is None
+  assert decide(dict(log[1], mf_active_slots=float("nan")), has_masks=False) is not None
+  # With masks, "auto" is the labelled check: a score of 19 passes 0.55 whatever the slots.
+  assert decide(log[1], has_masks=True) is None
+  t.restart_signal = "mask_free"
+  assert decide(log[1], has_masks=True) is not None
+  t.restart_signal = "labelled"
+  assert decide(dict(log[1], score=0.5), has_masks=True) is not None
+
+
+def test_labelled_check_is_refused_on_a_set_without_masks():
+  config = load_config()
+  config.data.has_masks = False
+  config.train.restart_check_step = config.train.eval_every
+  config.train.restart_signal = "labelled"
+  with pytest.raises(config_checks.ConfigError, match="has_masks"):
+    config_checks.check_config(config)
+  config.train.restart_signal = "auto"
+  config_checks.check_config(config)
+  config.train.restart_signal = "labels"
+  with pytest.raises(config_checks.ConfigError, match="restart_signal"):
+    config_checks.check_config(config)

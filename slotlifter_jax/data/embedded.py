@@ -36,11 +36,20 @@ def object_options(data_config) -> dict:
           "object_scale": float(d.get("object_scale", 1.0))}
 
 
+def num_dev_scenes(data_config) -> int:
+  """Scenes of the development split (layout.SPLITS); configs saved before it existed: as many as
+  the test split."""
+  return int(data_config.get("num_dev_scenes", data_config.num_test_scenes))
+
+
 def dataset_dir(data_config, *, seed: int) -> str:
   from slotlifter_jax.data import generator  # heavy imports only when generating
   d = data_config
+  # The name counts the four splits: folders made before the held-out split existed hold three
+  # splits (their test scenes are today's dev scenes) and are never reused or modified.
   name = (f"{d.family}-v{generator.GENERATOR_VERSION}-{d.image_size}px-{d.views_per_scene}v-"
-          f"{d.num_train_scenes}-{d.num_val_scenes}-{d.num_test_scenes}-s{seed}")
+          f"{d.num_train_scenes}-{d.num_val_scenes}-{num_dev_scenes(d)}-{d.num_test_scenes}"
+          f"-s{seed}")
   objects = object_options(d)
   generator.check_object_options(d.family, **objects)
   if not generator.is_default_objects(d.family, **objects):
@@ -56,13 +65,14 @@ def ensure_dataset(data_config, *, seed: int = 0) -> str:
   d = data_config
   root = dataset_dir(d, seed=seed)
   subset = SUBSETS[d.family]
-  splits = {"train": d.num_train_scenes, "val": d.num_val_scenes, "test": d.num_test_scenes}
+  splits = {"train": d.num_train_scenes, "val": d.num_val_scenes, "dev": num_dev_scenes(d),
+            "test": d.num_test_scenes}
   if all(os.path.exists(os.path.join(root, f"{subset}_{s}", "dataset.json")) for s in splits):
     return root
   logging.info("embedded %s set not found: generating it into %s (once)", d.family, root)
   generator.generate_dataset(
       root, family=d.family, num_train=d.num_train_scenes, num_val=d.num_val_scenes,
-      num_test=d.num_test_scenes, views=d.views_per_scene, image_size=d.image_size, seed=seed,
+      num_test=d.num_test_scenes, num_dev=num_dev_scenes(d), views=d.views_per_scene, image_size=d.image_size, seed=seed,
       progress=True, **object_options(d))
   return root
 

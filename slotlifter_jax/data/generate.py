@@ -1,9 +1,9 @@
 """Command line for the embedded default data set (docs/method.md §3.5).
 
   python -m slotlifter_jax.data.generate --family=clevr --out=DIR --num_train=1000 --num_val=100 \
-      --num_test=100 --views=4 --image_size=128 --seed=0
+      --num_dev=100 --num_test=100 --views=4 --image_size=128 --seed=0
 
-writes DIR/clevr_567_{train,val,test} (room: DIR/room_chair_*) in the uORF folder format; see
+writes DIR/clevr_567_{train,val,dev,test} (room: DIR/room_chair_*) in the uORF folder format; see
 `generator.generate_dataset` for the layout. With --preview=PATH it instead writes one small PNG
 grid of a few training scenes (per scene a row of views and a row of their instance masks):
 
@@ -32,7 +32,8 @@ flags.DEFINE_enum("family", "clevr", list(generator.FAMILIES), "Scene family.")
 flags.DEFINE_string("out", None, "Output root; splits go to OUT/<subset>_<split>.")
 flags.DEFINE_integer("num_train", 1000, "Training scenes.")
 flags.DEFINE_integer("num_val", 100, "Validation scenes.")
-flags.DEFINE_integer("num_test", 100, "Test scenes.")
+flags.DEFINE_integer("num_dev", 100, "Development scenes (the former test split's stream).")
+flags.DEFINE_integer("num_test", 100, "Held-out test scenes (a stream no choice has read).")
 flags.DEFINE_integer("views", 4, "Views per scene (8: the first 4 are source views).")
 flags.DEFINE_integer("image_size", 128, "Square image size H = W in pixels.")
 flags.DEFINE_integer("seed", 0, "Base seed; scene s of split x is seeded by (seed, family, x, s).")
@@ -98,7 +99,8 @@ def main(argv):
   try:
     summary = generator.generate_dataset(
         FLAGS.out, family=FLAGS.family, num_train=FLAGS.num_train, num_val=FLAGS.num_val,
-        num_test=FLAGS.num_test, views=FLAGS.views, image_size=FLAGS.image_size, seed=FLAGS.seed,
+        num_test=FLAGS.num_test, num_dev=FLAGS.num_dev, views=FLAGS.views,
+        image_size=FLAGS.image_size, seed=FLAGS.seed,
         num_workers=FLAGS.num_workers, progress=FLAGS.progress, overwrite=FLAGS.overwrite,
         supersample=FLAGS.supersample, **objects)
   except FileExistsError as e:

@@ -28,7 +28,12 @@ from slotlifter_jax.data.cameras import look_at_cam_to_world
 GENERATOR_VERSION = 1
 FAMILIES = ("clevr", "room")
 SUBSETS = {"clevr": "clevr_567", "room": "room_chair"}  # uORF folder prefixes (docs/method.md §3.2)
-SPLITS = ("train", "val", "test")
+# "dev" holds the scenes that were the set's test split before a held-out one existed, from the
+# same seed stream, so its files are byte for byte the former test split's. Recipe choices were
+# made by reading those scenes, so they only serve development. "test" is held out: drawn from a
+# seed stream that no run, probe or choice has used, and opened only by evaluation.
+SPLITS = ("train", "val", "dev", "test")
+SPLIT_STREAMS = {"train": 0, "val": 1, "dev": 2, "test": 3}  # the SeedSequence entry of a split
 SCENE_SCALE = 1.0 / 7.0  # uORF "nss_scale": readers scale world units by it (docs/method.md §3.1)
 
 # ---- cameras (docs/method.md §3.1, §3.5) ----

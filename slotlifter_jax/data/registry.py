@@ -33,7 +33,8 @@ from slotlifter_jax.data.types import DataConfigError
 from slotlifter_jax.data.types import DataError
 from slotlifter_jax.data.types import Scene
 
-SPLITS = ("train", "val", "test")
+# "dev": the embedded sets' development split (data/layout.py says why); real sets have none.
+SPLITS = ("train", "val", "dev", "test")
 
 
 def hold_out(names: list[str], *, split: str, num_val: int, where: str) -> list[str]:
@@ -127,7 +128,7 @@ def in_source_azimuth_frame(scene: Scene) -> Scene:
 
 
 def load_split(data_config, split: str, *, max_scenes: Optional[int] = None) -> list[Scene]:
-  """The scenes of `split` ('train' | 'val' | 'test') of the data set `data_config` describes.
+  """The scenes of `split` ('train' | 'val' | 'dev' | 'test') of the data set `data_config` describes.
 
   Args:
     data_config: the `config.data` ConfigDict (format, root, subset, image_size, scene_scale,
@@ -151,6 +152,9 @@ def load_split(data_config, split: str, *, max_scenes: Optional[int] = None) -> 
                     "generate the embedded set first")
   if not os.path.isdir(data_config.root):
     raise DataError(f"{data_config.root}: data.root does not exist (or is not a folder)")
+  if split == "dev" and fmt in ("dtu", "scannet"):
+    raise DataError(f"{data_config.root}: data.format={fmt!r} has no 'dev' split (only the "
+                    f"embedded sets do); use val to choose and test to report")
   frame = data_config.get("frame", "world")
   loader = {"uorf": _load_uorf, "uocf": _load_uorf, "dtu": _load_dtu,
             "scannet": _load_scannet}[fmt]

@@ -31,7 +31,8 @@ from slotlifter_jax.data.layout import (BACKGROUND_LABEL, CAMERA_ELEVATION_DEG,
                                         CAMERA_ELEVATION_JITTER_DEG, CAMERA_RADIUS,
                                         CAMERA_RADIUS_JITTER, FAMILIES, GENERATOR_VERSION,
                                         LABEL_GREY_STEP, MAX_OBJECTS, ROOM_HALF_SIZE, SCENE_SCALE,
-                                        SPLITS, SUBSETS, CameraSpec, SceneSpec, camera_to_world,
+                                        SPLIT_STREAMS, SPLITS, SUBSETS, CameraSpec, SceneSpec,
+                                        camera_to_world,
                                         check_object_options, is_default_objects,
                                         label_grey_levels, min_visible_pixels,
                                         normalised_intrinsics, num_source_views_for,
@@ -61,7 +62,7 @@ class GeneratedScene:
 def scene_rng(*, seed: int, family: str, split: str, index: int) -> np.random.Generator:
   """Independent stream per (seed, family, split, scene index): order of workers cannot matter."""
   return np.random.default_rng(
-      np.random.SeedSequence([seed, FAMILIES.index(family), SPLITS.index(split), index]))
+      np.random.SeedSequence([seed, FAMILIES.index(family), SPLIT_STREAMS[split], index]))
 
 
 def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
@@ -248,11 +249,15 @@ def _existing_split_matches(path: str, header: dict) -> bool:
 
 
 def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int, num_test: int,
-                     views: int = 4, image_size: int = 128, seed: int = 0,
+                     num_dev: Optional[int] = None, views: int = 4, image_size: int = 128,
+                     seed: int = 0,
                      num_workers: Optional[int] = None, progress: bool = True,
                      overwrite: bool = False, supersample: int = 2, min_objects: int = 0,
                      max_objects: int = 0, object_scale: float = 1.0) -> dict:
-  """Writes <out_dir>/<subset>_{train,val,test} and returns a summary (seconds per split).
+  """Writes <out_dir>/<subset>_{train,val,dev,test} and returns a summary (seconds per split).
+
+  `num_dev` (None: as many as `num_test`) scenes of the development split, the former test split
+  (layout.SPLITS says why); `num_test` scenes of the held-out test split.
 
   `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
   select an easier set (`sample_clevr_layout`); its dataset.json headers record them under
@@ -262,7 +267,8 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
   as it is (this resumes an interrupted run); any other non-empty split folder is an error unless
   `overwrite`. Each split is written to a temporary sibling folder and renamed into place only
   when complete. Scene s of a split is seeded by (seed, family, split, s), so the files do not
-  depend on `num_workers`; SSSS in the file names counts scenes over train, val, test in turn.
+  depend on `num_workers`; SSSS in the file names counts scenes over train, val, dev, test in
+  turn, so the dev split's files keep the names the former test split's had.
   """
   from tqdm import tqdm
 
@@ -273,7 +279,9 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
   check_object_options(family, min_objects, max_objects, object_scale)
   objects = dict(min_objects=min_objects, max_objects=max_objects, object_scale=object_scale)
   subset = SUBSETS[family]
-  counts = {"train": num_train, "val": num_val, "test": num_test}
+  if num_dev is None:
+    num_dev = num_test
+  counts = {"train": num_train, "val": num_val, "dev": num_dev, "test": num_test}
   headers = {s: _split_header(family=family, split=s, seed=seed, views=views,
                               image_size=image_size, num_scenes=n, supersample=supersample,
                               **objects)
@@ -302,7 +310,8 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
              "splits": {}}
   start_all = time.perf_counter()
   try:
-    offsets = {"train": 0, "val": num_train, "test": num_train + num_val}
+    offsets = {"train": 0, "val": num_train, "dev": num_train + num_val,
+               "test": num_train + num_val + num_dev}
     for s in SPLITS:
       if s not in todo:
         summary["splits"][s] = {"path": paths[s], "num_scenes": counts[s], "seconds": 0.0,
