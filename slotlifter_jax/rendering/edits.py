@@ -1,0 +1,286 @@
+"""Editing a scene by its slots (docs/editing.md): remove, keep, move and swap slots, as functions
+of what the model renders along rays.
+
+Vocabulary (docs/method.md §0): `...` any leading batch shape (e.g. [B, R]), S samples per ray, K
+real slots (K+1 with the empty slot s_∅ at index 0 of the point-slot weights W; the real slots are
+numbered 0 … K−1 here, as in the rendered segmentation and the `--mode=render` panels).
+
+A pass of the model over the samples of some rays gives, per sample, each real slot's share σ_k of
+the density (`RenderOutput.slot_density`, Σ_k σ_k = σ: exp(s_σ)·W_k·ReLU(A_k) with slot-based
+density, σ·W_k/Σ_{j≥1} W_j with `model.density_mode = "mlp"`; docs/method.md §1.4), the colour c
+the colour MLP gives the sample, and the weights W. An edit takes each slot's density from one of
+one or more passes, or from none (`composite`):
+
+  σ̃ = Σ_k σ̃_k,   σ̃_k = σ_k of the pass that owns slot k (0 for a removed slot),
+  c̃ = Σ_p (σ̃_p / σ̃)·c_p   with σ̃_p the density pass p contributes (c of pass 0 where σ̃ = 0),
+  W̃_k = W_k of the pass that owns slot k (0 for a removed slot),
+
+then volume rendering (docs/method.md §1.5) of σ̃, c̃ and W̃ along the unchanged sample depths.
+A pass's colour is one colour per sample, not one per slot (the colour MLP reads the slot mixture
+F_s = Linear(W·S')), so a slot's colour reaches the picture only through its density: a removed
+slot adds neither density nor colour, and a pass adds its colour in proportion to the density it
+contributes.
+
+- Remove slot k: one pass, slot k owned by none. In the space the object leaves the model renders
+  what its other slots hold there: σ − σ_k, with the colour the sample had. Where the object stood
+  the samples' colour came mostly from the object (the point-slot weights gave the point to slot
+  k), and the points behind it lie where the source view saw the object, so their lifted features
+  carry the object's colour (docs/method.md §1.3); where no other slot has density the ray stays
+  transparent and renders black (no background colour, §1.5). docs/editing.md says what that
+  looks like.
+- Keep slots: the complement, one pass. Keeping one slot is what that slot renders alone in the
+  `--mode=render` panels (rendering/pictures.render_each_slot).
+- Move slot k by a rigid motion T (a translation t, optionally a turn about the vertical axis
+  through a pivot): a second pass queries every sample at T⁻¹(x). Rays are rigid, so that pass is
+  the model's pass along the ray T⁻¹(o) + z·R⁻¹d at the same depths z (`moved_rays`); its lifted
+  features are gathered where T⁻¹(x) projects into the source views, i.e. where the source view
+  saw the object before it moved. Slot k takes its density (and its share of the colour) from that
+  pass, every other slot from the plain pass at x.
+- Swap slot k between scenes: the second pass is another scene's (its slots and source views) at
+  the same rays; slot k comes from it. With the background slot this puts one scene's objects on
+  another's background.
+
+The passes share the sample depths z, so `render_edit` runs the moved pass with
+`SlotLifter.render_at_depths`, which covers coarse-only models (the synthetic sets); a model with a
+fine pass (DTU, ScanNet) can remove and keep slots but not move them.
+
+Translations are given in the model's frame; `frame_map` turns a world-space translation (the data
+set's stored units and axes) into it, through data.scene_scale and data.frame.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, Optional, Sequence
+
+import flax.struct
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from slotlifter_jax import model as model_lib
+from slotlifter_jax.rendering import volume
+
+# Owner code of a slot that no pass renders (`Edit.owner`).
+REMOVED = -1
+PLAIN, MOVED = 0, 1  # pass indices in `render_edit`
+
+
+@flax.struct.dataclass
+class SlotField:
+  """What one pass of the model gives the samples of some rays."""
+  slot_density: jax.Array  # [..., S, K] σ_k, each real slot's share of σ
+  colour: jax.Array  # [..., S, C] the colour MLP's output
+  weights: jax.Array  # [..., S, K+1] point-slot weights W, index 0 = s_∅
+
+
+def field_of(out: model_lib.RenderOutput) -> SlotField:
+  """The SlotField of the model's last pass (the fine one when there is one)."""
+  return SlotField(slot_density=out.slot_density, colour=out.sample_colour,
+                   weights=out.point_slot_weights)
+
+
+def composite(fields: Sequence[SlotField], owner, *, z: jax.Array, far, density_scale: float,
+              last_delta: Optional[jax.Array] = None) -> volume.RenderResult:
+  """Volume rendering of slots drawn from several passes (module docstring).
+
+  fields: P passes over the same samples; owner: [K] ints, the pass slot k comes from, or
+  REMOVED; z: [..., S] the passes' common sample depths; far, density_scale, last_delta as in
+  `volume.volume_render`. The segmentation is over the K real slots, W̃ normalised.
+  """
+  owner = jnp.asarray(owner, jnp.int32)  # [K]
+  kept = [(owner == p).astype(f.slot_density.dtype) for p, f in enumerate(fields)]  # P × [K]
+  per_pass = [jnp.sum(f.slot_density * m, axis=-1) for f, m in zip(fields, kept)]  # P × [..., S]
+  density = sum(per_pass[1:], per_pass[0])  # [..., S]
+  colour = fields[0].colour
+  if len(fields) > 1:
+    # c_0 + Σ_{p≥1} (σ̃_p/σ̃)·(c_p − c_0) = Σ_p (σ̃_p/σ̃)·c_p, and exactly c_0 when every other pass
+    # gives pass 0's colour (a move by zero).
+    safe = jnp.where(density > 0, density, 1.0)
+    for p in range(1, len(fields)):
+      share = jnp.where(density > 0, per_pass[p] / safe, 0.0)[..., None]  # [..., S, 1]
+      colour = colour + share * (fields[p].colour - fields[0].colour)
+  real = sum((f.weights[..., 1:] * m for f, m in zip(fields, kept)),
+             jnp.zeros_like(fields[0].weights[..., 1:]))  # [..., S, K]
+  weights = jnp.concatenate([fields[0].weights[..., :1], real], axis=-1)  # [..., S, K+1]
+  return volume.volume_render(density=density, z=z, colour=colour, slot_weights=weights, far=far,
+                              density_scale=density_scale, last_delta=last_delta)
+
+
+# ---------------------------------------------------------------------------------------------
+# Rigid motions of a slot
+# ---------------------------------------------------------------------------------------------
+
+
+@flax.struct.dataclass
+class RigidMove:
+  """x ↦ R(x − pivot) + pivot + translation, R the turn by `yaw` (radians, counter-clockwise
+  seen from above) about the vertical (z) axis through `pivot`; all in the model's frame."""
+  translation: jax.Array  # [3]
+  yaw: jax.Array  # []
+  pivot: jax.Array  # [3]; only its x and y matter
+
+  @staticmethod
+  def make(translation, yaw: float = 0.0, pivot=(0.0, 0.0, 0.0)) -> "RigidMove":
+    return RigidMove(translation=jnp.asarray(translation, jnp.float32),
+                     yaw=jnp.asarray(yaw, jnp.float32), pivot=jnp.asarray(pivot, jnp.float32))
+
+
+def _turn(v: jax.Array, angle: jax.Array) -> jax.Array:
+  """v [..., 3] turned by `angle` about z."""
+  c, s = jnp.cos(angle), jnp.sin(angle)
+  return jnp.stack([c * v[..., 0] - s * v[..., 1], s * v[..., 0] + c * v[..., 1], v[..., 2]],
+                   axis=-1)
+
+
+def apply_move(points: jax.Array, move: RigidMove) -> jax.Array:
+  """T(x) for points [..., 3]."""
+  return _turn(points - move.pivot, move.yaw) + move.pivot + move.translation
+
+
+def inverse_move(points: jax.Array, move: RigidMove) -> jax.Array:
+  """T⁻¹(x) for points [..., 3]."""
+  return _turn(points - move.pivot - move.translation, -move.yaw) + move.pivot
+
+
+def moved_rays(origins: jax.Array, directions: jax.Array, move: RigidMove):
+  """The rays whose samples at depth z are T⁻¹ of the samples of rays [..., 3] at depth z."""
+  return inverse_move(origins, move), _turn(directions, -move.yaw)
+
+
+# ---------------------------------------------------------------------------------------------
+# Edits of the model's rendering
+# ---------------------------------------------------------------------------------------------
+
+
+@flax.struct.dataclass
+class Edit:
+  """Which pass each real slot comes from (`composite`) and the motion of the moved pass."""
+  owner: jax.Array  # [K] int32: PLAIN, MOVED or REMOVED
+  move: RigidMove
+  has_move: bool = flax.struct.field(pytree_node=False, default=False)
+
+  @staticmethod
+  def identity(num_slots: int) -> "Edit":
+    return Edit(owner=jnp.zeros(num_slots, jnp.int32), move=RigidMove.make((0.0, 0.0, 0.0)))
+
+  @staticmethod
+  def remove(slots: Sequence[int], num_slots: int) -> "Edit":
+    owner = np.zeros(num_slots, np.int32)
+    owner[_check_slots(slots, num_slots)] = REMOVED
+    return Edit(owner=jnp.asarray(owner), move=RigidMove.make((0.0, 0.0, 0.0)))
+
+  @staticmethod
+  def keep(slots: Sequence[int], num_slots: int) -> "Edit":
+    owner = np.full(num_slots, REMOVED, np.int32)
+    owner[_check_slots(slots, num_slots)] = PLAIN
+    return Edit(owner=jnp.asarray(owner), move=RigidMove.make((0.0, 0.0, 0.0)))
+
+  @staticmethod
+  def moving(slot: int, num_slots: int, move: RigidMove) -> "Edit":
+    owner = np.zeros(num_slots, np.int32)
+    owner[_check_slots([slot], num_slots)] = MOVED
+    return Edit(owner=jnp.asarray(owner), move=move, has_move=True)
+
+
+def _check_slots(slots: Sequence[int], num_slots: int) -> list[int]:
+  slots = [int(k) for k in slots]
+  bad = [k for k in slots if not 0 <= k < num_slots]
+  if bad:
+    raise ValueError(f"slot {bad[0]} out of range: the model has slots 0 … {num_slots - 1}")
+  return slots
+
+
+def edit_rays(render_pass: Callable, edit: Edit, *, origins: jax.Array, directions: jax.Array,
+              far, density_scale: float) -> volume.RenderResult:
+  """An edited rendering of rays [..., 3] from a pass function.
+
+  render_pass(origins, directions, z) → (SlotField, z): the field at the samples of the rays, at
+  the depths z [..., S] when given and at the pass's own depths when z is None. The plain pass
+  runs at its own depths; with `edit.has_move` a second pass runs along `moved_rays` at the same
+  depths. Any field will do: the model's (`render_edit`), or a constructed one in the tests.
+  """
+  plain, z = render_pass(origins, directions, None)
+  fields = [plain]
+  if edit.has_move:
+    o, d = moved_rays(origins, directions, edit.move)
+    moved, _ = render_pass(o, d, z)
+    fields.append(moved)
+  return composite(fields, edit.owner, z=z, far=far, density_scale=density_scale)
+
+
+def model_pass(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded, sources: dict):
+  """The render_pass of `edit_rays` for a model at evaluation: `model.render_rays`, or with z the
+  coarse pass at those depths (`model.render_at_depths`, which refuses models with a fine pass)."""
+  def render_pass(origins, directions, z):
+    if z is None:
+      out = model.apply({"params": params}, encoded, **sources, ray_origins=origins,
+                        ray_directions=directions, train=False, method=model.render_rays)
+    else:
+      out = model.apply({"params": params}, encoded, **sources, ray_origins=origins,
+                        ray_directions=directions, z=z, method=model.render_at_depths)
+    return field_of(out), out.z
+  return render_pass
+
+
+def render_edit(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded, sources: dict,
+                edit: Edit, *, origins: jax.Array, directions: jax.Array) -> volume.RenderResult:
+  """The model's rendering of rays [B, R, 3] with `edit` applied (module docstring)."""
+  if edit.has_move and model.num_fine_samples > 0:
+    raise ValueError(f"moving a slot needs one set of sample depths for both passes; the model "
+                     f"has a fine pass (num_fine_samples={model.num_fine_samples}) whose depths "
+                     f"follow each pass's own coarse weights")
+  return edit_rays(model_pass(model, params, encoded, sources), edit, origins=origins,
+                   directions=directions, far=model.far, density_scale=model.density_scale)
+
+
+def render_swap(model: model_lib.SlotLifter, params, scenes: Sequence[tuple], owner, *,
+                origins: jax.Array, directions: jax.Array) -> volume.RenderResult:
+  """Slots drawn from several scenes at the same rays: scenes is [(encoded, sources), …] and
+  owner [K] names, per slot, the scene it comes from (or REMOVED). Each scene's pass lifts its own
+  source views. A background swap: owner 1 for the background slot, 0 for the others."""
+  first = model_pass(model, params, *scenes[0])
+  plain, z = first(origins, directions, None)
+  fields = [plain] + [model_pass(model, params, *s)(origins, directions, z)[0]
+                      for s in scenes[1:]]
+  return composite(fields, owner, z=z, far=model.far, density_scale=model.density_scale)
+
+
+# ---------------------------------------------------------------------------------------------
+# From world space to the model's frame
+# ---------------------------------------------------------------------------------------------
+
+# How far from a rotation the map between a scene's stored and model-frame cameras may be: the
+# readers store poses as float32 of ten-decimal text.
+FRAME_TOL = 1e-4
+
+
+def frame_map(*, world_cam_to_world: np.ndarray, model_cam_to_world: np.ndarray,
+              scene_scale: float) -> tuple[np.ndarray, np.ndarray]:
+  """(A [3, 3], b [3]) with x_model = A·(scene_scale·x_world) + b, from one scene's cameras in
+  the stored world frame ([N, 4, 4], world units) and in the model's frame ([N, 4, 4]).
+
+  The model's frame is the world scaled by data.scene_scale and, with data.frame =
+  "source_azimuth", turned about z so the source view sits at azimuth 0 (docs/method.md §3.6); A
+  is that turn (the identity in the world frame). Every camera must map by the same A and b, else
+  ValueError. A translation t_world moves points by scene_scale·A·t_world in the model frame; a
+  turn about z stays a turn about z by the same angle when A is a turn about z.
+  """
+  world = np.asarray(world_cam_to_world, np.float64)
+  ours = np.asarray(model_cam_to_world, np.float64)
+  rot = ours[0, :3, :3] @ world[0, :3, :3].T
+  shift = ours[0, :3, 3] - rot @ (scene_scale * world[0, :3, 3])
+  if not np.allclose(rot @ rot.T, np.eye(3), atol=FRAME_TOL):
+    raise ValueError("the model-frame cameras are not a rotation of the world-frame ones")
+  for w, m in zip(world, ours):
+    if not (np.allclose(rot @ w[:3, :3], m[:3, :3], atol=FRAME_TOL)
+            and np.allclose(rot @ (scene_scale * w[:3, 3]) + shift, m[:3, 3],
+                            atol=FRAME_TOL * max(1.0, float(np.abs(m[:3, 3]).max())))):
+      raise ValueError("the scene's cameras do not all map from the world frame to the model's "
+                       "by one rotation, scale and shift")
+  return rot, shift
+
+
+def world_translation(translation, *, rotation: np.ndarray, scene_scale: float) -> np.ndarray:
+  """A world-space translation [3] (stored units and axes) in the model's frame [3]."""
+  return scene_scale * (np.asarray(rotation, np.float64) @ np.asarray(translation, np.float64))
+
