@@ -5,8 +5,8 @@
   python experiments/ab_step.py --base=. --configs=fast:fast_fold,quick:quick_fold --out=…
 
 On a shared or throttled host one step's time drifts by ±10 % between calls of
-`experiments/bench.py` minutes apart (experiments/README.md, "Folded products"), more than most
-code changes are worth. Here both versions are compiled once, each in its own process with the
+`experiments/bench.py` minutes apart (experiments/journal/2026-12.md, "Folded products"), more
+than most code changes are worth. Here both versions are compiled once, each in its own process with the
 project's allocator and XLA flags, and then take turns on the same cores: in every round each
 worker times --steps steps of its configuration (experiments/bench_common.py's configurations and
 batches) while the other waits on a pipe, and the order alternates from round to round. A drift

@@ -23,7 +23,8 @@ collapse, slotlifter_jax/collapse.py). Collapsed runs count in the means, as see
 The paper's figures (Room-Diverse, 128², 250k steps): without feature lifting PSNR 28.20 / NV-ARI
 71.4; without random masking FG-ARI 43.6 and collapsing runs; without slot density FG-ARI 77.3.
 A 600-step CPU budget is a different regime: read the table as the same ablation at a small
-budget, not as a reproduction (at 600 steps no variant splits objects: experiments/README.md).
+budget, not as a reproduction (at 600 steps no variant splits objects:
+experiments/journal/2026-11.md, "Ablations").
 
 Time: 63 min measured on the 2-core CPU for the defaults (4 variants × 3 seeds × 600 steps, 20
 scenes; 20:11–21:14 on 2026-11-22); --dry_run prints an estimate from the cost model in
@@ -45,7 +46,8 @@ from experiments import study_common as sc  # noqa: E402  (no JAX import)
 from experiments import study_tables as st  # noqa: E402
 
 BASE = "configs/room_chair.py:quick"
-NUM_STEPS = 600  # per run: the 12 runs took 63 min on the 2-core CPU (experiments/README.md)
+# Per run: the 12 runs took 63 min on the 2-core CPU (experiments/journal/2026-11.md, "Ablations").
+NUM_STEPS = 600
 EVAL_SCENES = 20
 VARIANTS = {
     "full": {},

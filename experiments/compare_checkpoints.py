@@ -16,8 +16,8 @@ bit-identical, 1 when some differ, 2 when the two cannot be compared (a run fold
 that is missing, or trees of other leaves, shapes or dtypes).
 
 Why: a claim that two runs trained the same weights (a resumed run against a straight one, a
-study run against the README's command with the same seed; experiments/README.md, "Speed against
-accuracy") rests on the weights themselves, not on equal metrics.
+study run against the README's command with the same seed; experiments/journal/2026-11.md,
+"Speed against accuracy") rests on the weights themselves, not on equal metrics.
 """
 
 from __future__ import annotations

@@ -10,7 +10,8 @@ evaluation and metric it prints the mean of the per-scene differences (other −
 its standard error over the scenes where both values are finite, and on how many scenes the
 metric rose and fell. Scenes differ more from each other than two settings do on one scene, so
 the standard error of a paired difference is smaller than that of either mean: 1.4–2.4× for
-FG-ARI and 3.5–12× for novel PSNR on the comparisons of experiments/README.md, "Twelfth round".
+FG-ARI and 3.5–12× for novel PSNR on the comparisons of experiments/journal/2026-11.md, "Twelfth
+round".
 
 `--out` also writes the comparison as JSON (evaluation folders, their checkpoints,
 `differs_from_training` and `parameters`, and the rows printed); an existing file is replaced only with

@@ -30,7 +30,7 @@ pareto_fast.csv/.md/.png. Its `base` run is the same run directory as
 share it. About 80 min per point alone on the 2026-11-27 host (seed 3 of `fast`: 79.5 min).
 
 Time: 45 min measured on the 2-core CPU for the defaults (600 steps, 20 scenes; 19:17–20:11 on
-2026-11-22, experiments/README.md); --dry_run prints an estimate from the cost model in
+2026-11-22, experiments/journal/2026-11.md); --dry_run prints an estimate from the cost model in
 study_common.py (0.3 s per quick step, 2.6 s per 64² scene). The
 32² set is generated once (about a minute) before its first run. Runs live in --root (default
 runs/study/, shared with ablations.py and stability.py); a finished run is skipped, so running the
@@ -53,7 +53,7 @@ from experiments import study_common as sc  # noqa: E402  (no JAX import)
 from experiments import study_tables as st  # noqa: E402
 
 BASE = "configs/clevr.py:quick"
-NUM_STEPS = 600  # per run: the seven points in about 45 min (experiments/README.md)
+NUM_STEPS = 600  # per run: the seven points in about 45 min (experiments/journal/2026-11.md)
 WIDE_ENCODER = {"model.encoder_stem_width": 64, "model.encoder_widths": (64, 128, 256),
                 "model.feature_dim": 64}
 POINTS = {

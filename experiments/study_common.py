@@ -69,13 +69,13 @@ CSV_COLUMNS = (("study", "name", "config", "overrides", "seed", "num_steps", "ru
                 "checkpoint_step", "render_per_view_s", "eval_s") + METRIC_KEYS +
                ("collapsed", "collapse_step", "probe_active_slots", "probe_largest_share"))
 
-# Rough cost model for --dry_run (estimates, not measurements): experiments/README.md measured
-# configs/clevr.py:quick at about 0.3 s per step (64², 32 samples, 2 × 256 rays) on the 2-core CPU,
+# Rough cost model for --dry_run (estimates, not measurements): experiments/journal/2026-11.md
+# measured configs/clevr.py:quick at about 0.3 s per step (64², 32 samples, 2 × 256 rays) on the 2-core CPU,
 # and evaluation at about 2.6 s per 4-view scene at 64²; the allocation transformer is most of a
 # step, so its part scales with rays × samples × its blocks × widths, and a view's render with
 # pixels × samples. What does not shrink with the decoder (encoder, optimiser, host work) is a
 # fixed part per step, fitted so that clevr.py:fast comes out near its measured ~0.045 s per
-# step with validations (README, "Objects emerging").
+# step with validations (docs/fast_model.md).
 _REF_STEP_S, _REF_RAYS, _REF_SAMPLES = 0.3, 2 * 256, 32
 _REF_DECODER = 4 * (64 + 256)  # quick: num_blocks × (point_dim + ffn_dim)
 _FIXED_STEP_S = 0.025

@@ -13,9 +13,9 @@ otherwise (`--params=trained` evaluates or renders the trained ones of a run tha
 the average as it was.
 
 Why: over the release of `fast`'s masking floor, validation FG-ARI moves by up to 0.06 between
-checkpoints 2000 steps apart (experiments/README.md, "Twenty-seventh round"), so which one the run
-ends on decides much of its last checkpoint's score. An average of the weights is the usual way to
-end on a settled model (Polyak & Juditsky 1992; the EMA of Tarvainen & Valpola 2017).
+checkpoints 2000 steps apart (experiments/journal/2026-11.md, "Twenty-seventh round"), so which
+one the run ends on decides much of its last checkpoint's score. An average of the weights is the
+usual way to end on a settled model (Polyak & Juditsky 1992; the EMA of Tarvainen & Valpola 2017).
 
 Off (d = 0), nothing is added to the optimiser state, so every checkpoint written without it
 restores as before; turning it on or off for an existing run changes the state's structure, which

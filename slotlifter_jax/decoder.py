@@ -20,7 +20,7 @@ With `fold_products` (the model's `model.fold_products`, off by default) the cro
 the mapping compute these functions with the per-point Linears folded into per-scene matrices
 built from the K+1 slots (`folded.py`): the same parameters and
 the same function to float32 rounding, with fewer per-point products, but not the same rounding,
-so a run is not the run it would be without it (experiments/README.md, "Folded products").
+so a run is not the run it would be without it (experiments/journal/2026-12.md, "Folded products").
 
 `density_mode="mlp"` is the paper's "without slot-based density" ablation (docs/method.md §5): σ
 comes from a small head on h instead (`mlp_density`); W, F_s and the colour are unchanged.

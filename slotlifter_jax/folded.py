@@ -5,8 +5,8 @@ Linears of the K+1 slots S' of its scene. By associativity the per-point Linears
 per-scene matrices built from the slots once, and the B·R·S points meet those in plain matmuls:
 the same function, from the same parameters (an `nn.Dense`'s names, shapes and initial values),
 with fewer per-point products, but another rounding. `decoder.py` uses them when
-`fold_products` is on (`model.fold_products`, off by default: experiments/README.md, "Folded
-products"); tests/test_folded_products.py checks each against the unfolded order in NumPy.
+`fold_products` is on (`model.fold_products`, off by default: experiments/journal/2026-12.md,
+"Folded products"); tests/test_folded_products.py checks each against the unfolded order in NumPy.
 """
 
 from __future__ import annotations
@@ -48,7 +48,8 @@ def folded_cross_attention(*, queries: jax.Array, keys_values: jax.Array, query,
   so each scene's [Cq, H·L] and [H·L, out] matrices are built from its L keys once and the T
   queries meet them in two plain matmuls: no per-query projection, no per-head batched product.
   With L = K+1 slots and H·L ≈ the projection width this is the cheaper order (with
-  `folded_mapping`, 0.87–0.90× the whole train step: experiments/README.md, "Folded products").
+  `folded_mapping`, 0.87–0.90× the whole train step: experiments/journal/2026-12.md, "Folded
+  products").
   """
   (wq, bq), (wk, bk), (wv, bv), (wo, bo) = query, key, value, out
   b, t, _ = queries.shape

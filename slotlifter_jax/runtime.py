@@ -13,8 +13,9 @@ first: the `cmeel-mimalloc` wheel, a dependency of this package, ships it inside
 environment, so `pip install` alone gives a retaining allocator, and, configured never to purge,
 it serves the temp buffer as fast as tcmalloc with half tcmalloc's peak memory on the paper-sized
 step (`python experiments/bench.py --configs=B,A --allocators=system,mimalloc,tcmalloc`:
-experiments/README.md, docs/performance.md §1). jemalloc with decay off kept mapping fresh
-buffers on that step until the benchmark was OOM-killed (`experiments/rss_per_step.py`).
+experiments/journal/2026-11.md, "Train-step benchmark"; docs/performance.md §1). jemalloc with
+decay off kept mapping fresh buffers on that step until the benchmark was OOM-killed
+(`experiments/rss_per_step.py`).
 """
 
 from __future__ import annotations

@@ -127,7 +127,7 @@ def init_state(model, config, batch: dict, key: jax.Array) -> TrainState:
   """The train state at step 0: initialised weights and the optimiser's state."""
   # The program is almost all inlined threefry draws, one per weight (the forward is dead code);
   # on a CPU, LLVM at -O1 compiles it in 45–75 % of the default level's time, to the same bits
-  # (experiments/compile_levels.py; experiments/README.md, "Compile time").
+  # (experiments/compile_levels.py; experiments/journal/2026-11.md, "Compile time").
   init, args = init_program(model, config, batch, key, compiler_options=_init_options())
   return _state_from(init(*args)["params"], config)
 
@@ -326,7 +326,7 @@ def make_train_block(model, config, *, key: jax.Array, data_key: jax.Array, num_
   `make_train_step`, so a run is a pure function of (seed, step) whatever the block length, and a
   resumed run is exact. One dispatch per block pays the host's per-step costs (dispatch, metric
   transfer, the wait before the next step) once per block: with a small decoder they were as large
-  as the step itself (experiments/README.md, "Where the time of a small step goes").
+  as the step itself (experiments/journal/2026-11.md, "The scene-sized model").
   """
   d, t = config.data, config.train
   stages = tuple((int(a), int(b)) for a, b in d.get("curriculum", ()))

@@ -39,7 +39,7 @@ last_delta [B, R] or None) -> (outputs tuple, weights [B, R, S'])`, so a test ca
 analytic field through the same code. Only coarse-only models (the synthetic sets) are supported:
 the fine pass of DTU/ScanNet places its samples from the whole ray's coarse weights.
 
-Measured speed and quality: experiments/README.md ("Adaptive full-view rendering"),
+Measured speed and quality: experiments/journal/2026-11.md ("Adaptive full-view rendering"),
 experiments/bench_render.py.
 """
 

@@ -63,12 +63,13 @@ def render_cameras(render_chunk, *, cam_to_world, intrinsics, height: int, width
   `render_chunk` returns a tuple of [1, chunk, ...] arrays; the result holds, per tuple entry, an
   array [n, H·W, ...]. The last chunk repeats its last ray, so one compiled shape serves any size,
   and cameras go one at a time to bound memory. The chunk shrinks to H·W for a smaller view: a
-  32² view padded to a 4096-ray chunk cost as much as a 64² one (experiments/README.md, pareto).
+  32² view padded to a 4096-ray chunk cost as much as a 64² one (experiments/journal/2026-11.md,
+  "Speed against accuracy").
 
   supersample S > 1: each entry is the mean of S×S rays per pixel (`geometry.subpixel_offsets`),
   the footprint average that the embedded generator records as a pixel's colour; S² times the
-  work. A model trained on centre rays gains little from it (experiments/README.md, "Twenty-fourth
-  round").
+  work. A model trained on centre rays gains little from it (experiments/journal/2026-11.md,
+  "Twenty-fourth round").
   """
   centres = geometry.image_pixels(height, width).reshape(-1, 2)  # [H·W, 2]
   offsets = geometry.subpixel_offsets(supersample)
