@@ -262,27 +262,16 @@ def apply_variant(c: ml_collections.ConfigDict, variant: str) -> ml_collections.
 
 def quick(c):
   """A CPU-sized run of the same method: 64×64, a narrower ResNet-18-style encoder, fewer rays and
-  samples, and every schedule compressed to the shorter run.
+  samples, and every schedule compressed to 6500 steps; s_σ starts at −3 and base_lr is the
+  paper's, because a more opaque start or a higher rate left every run in a "fog" at the near plane.
 
-  Two settings differ from a plain compression of the paper's, both measured on clevr
-  (docs/quick_model.md):
-  - s_σ starts at −3 instead of 0 (`model.density_log_init`). With 32 samples a ray is opaque
-    within its first two samples at initialisation (α ≈ 0.9 at σ ≈ 1, δ·25 ≈ 1.6); every run
-    that started so stayed in a "fog" at the near plane (depth = near, σ ≈ 30–150 on every
-    sample) because no gradient reaches samples behind an opaque one. Starting 20× more
-    transparent lets the floor's geometry form (validation depth leaves the near plane).
-  - base_lr 5e-5 (the paper's); 4× that pinned the fog within 150 steps.
+    python -m slotlifter_jax.main --config=configs/clevr.py:quick --workdir=DIR
 
-  The schedules fit 6500 steps (masking and slot noise over 3000, locality 4000, lr half-life
-  4000): the 4000-step version flattened as its lr reached the floor.
-
-  Measured on this 2-core CPU with `python -m slotlifter_jax.main --config=configs/clevr.py:quick
-  --workdir=DIR` (tcmalloc): 6500 steps in 59 min 20 s wall, of which the first 27 min shared the
-  CPU with other benchmark jobs (1.0–1.4 steps/s then). Its last 2000 steps, alone, ran at 2.5
-  steps/s with validations and checkpoints, so the whole run alone would take about 44 min (an
-  estimate from that rate, not a measurement). Then `--mode=eval` on the 100-scene test split (best checkpoint,
-  step 5000): novel-view PSNR 22.81 ± 0.16 dB, FG-ARI 0.172 ± 0.011, NV-ARI 0.654 ± 0.013,
-  ARI 0.732. The targets (PSNR ≥ 28 dB, FG-ARI ≥ 0.8) are not met (docs/quick_model.md).
+  Expected (best checkpoint, 100 scenes of the former test split): novel-view PSNR 22.81 dB,
+  FG-ARI 0.172, NV-ARI 0.654 (`experiments/results/clevr_quick_test_metrics.json`): it renders the
+  scene but does not split it. Time: 6500 steps in 59 min 20 s on the project's 2-core CPU,
+  shared with other jobs for the first 27 min. Why each setting is what it is, and what did not
+  help: docs/quick_model.md.
   """
   c.data.image_size = 64
   c.data.num_train_scenes = 1000
@@ -353,110 +342,17 @@ def smoke(c):
 
 def fast(c):
   """The scene-sized CPU model: the quick variant's method and loss with no more model than a
-  64 px CLEVR scene needs, trained for many cheap steps so the masking phase lasts long enough
-  for objects to emerge (issue "Objects emerge on this CPU"; experiments/README.md, "Emergence").
+  64 px CLEVR scene needs, a masking floor released along a cosine, and a restart check at step
+  14 000; the README's training command.
 
-  Each cut, what it saves and what it costs (step costs: `python experiments/bench.py
-  --configs=quick,fast`, experiments/README.md):
-  - slot width Ds 256 → 32, slot MLP 1024 → 64: a 64 px scene has at most 7 objects of a few
-    feature cells each. Here the width is an inductive bias more than a cost: a wide slot can
-    carry several objects, and two object slots then render the same objects as copies of each
-    other. On the easy set (K = 4, same schedules) FG-ARI on views with two or more objects was
-    0.48 at step 16 000 with Ds 64 and 0.58–0.60 from 16 000 to 24 000 with Ds 32, while Ds 16
-    could not carry the scene (NV-ARI 0.20 at 12 000) and Ds 256 was below 64 at 10 000
-    (experiments/README.md, "Emergence", second and third rounds). Costs: NV-ARI on the easy set
-    fell from 0.83–0.85 to 0.72–0.74. On the full set Ds 64 (seed 0, test split) ends inside the
-    five seeds' spread: 26.2 dB, FG-ARI 0.68, NV-ARI 0.83, in the same time.
-  - point width C 64 → 32, FFN 256 → 64, colour MLP 64 → 32, 4 → 2 allocation blocks: the
-    decoder is almost all of the step (it runs per sample); these cut its FLOPs about 8×. Costs
-    capacity for view-dependent detail, which the diffuse CLEVR floor hardly has. The small
-    decoder is also what makes the slots split the scene: with 4 blocks (seed 0, 60 000 steps,
-    test split) novel PSNR rises to 26.8 dB (26.0) but FG-ARI falls to 0.47 (0.84), in 1.7× the
-    training time, and a colour MLP of 64 gives 26.4 dB with FG-ARI 0.64 in 1.04× the time
-    (experiments/README.md, "Speed against accuracy").
-  - samples only inside the scene's slab (`render.z_bounds` = `data.scene_z_range`), 16 per ray:
-    half of [near, far] lies below the floor, so 16 samples in the slab are denser than the
-    quick model's 32 over the whole interval. 32 samples per ray split worse too (seed 0, test
-    split: 26.7 dB but FG-ARI 0.26, NV-ARI 0.35, in 1.8× the training time); 8 train in 0.67×
-    the time and render in half, for 25.5 dB, FG-ARI 0.69 and NV-ARI 0.76 (0.82).
-  - batch 4 scenes × 128 rays instead of 2 × 256: the same decoder cost, and slot attention sees
-    twice as many scenes per step (it is sensitive to batch size: OSRT, BO-QSA). 8 × 64 costs
-    more, because the encoder then runs on 8 source views per step. 4 × 64 trains in 0.67× the
-    time at the same PSNR (26.1 dB) but stops splitting (FG-ARI 0.59, NV-ARI 0.50); 4 × 256
-    gains 0.7 dB (26.6) and keeps the split inside the seed spread (FG-ARI 0.69, NV-ARI 0.81),
-    but trains in 1.6× the time (83 min), which leaves no room in a 90-minute budget. 256 rays
-    from step 26 000 only (`train.ray_stages`), with 1000 or 4000 scenes (`data.scene_stages`),
-    keep the split (FG-ARI 0.84 and 0.82, NV-ARI 0.83 and 0.82; 72 min with 4000) but not the PSNR
-    (26.2 and 26.1 dB; experiments/README.md, "Tenth round").
-  - host batches, one step per dispatch (`data.sampler = "host"`): at 4 × 128 rays the NumPy
-    gather costs 0.4 ms, while drawing the batch inside the jitted step (`data.sampler =
-    "device"`, needed for `data.curriculum`) measured 3–22 % slower, and a `lax.scan` over steps
-    (`train.steps_per_dispatch` > 1) 3.2× slower, as XLA:CPU compiles the encoder's convolution
-    gradients poorly inside a loop body (`fast_device`, `fast_scan10` in experiments/bench.py).
-  Altogether the step costs 0.064 s against quick's 0.324 s (1/5, not the 1/8 aimed at: 1/8.3 of
-  the FLOPs, but small matmuls run far below the CPU's peak; experiments/README.md, "The
-  scene-sized model"); on the slower host of 2026-11-27, 0.0791 s against 0.5201 s (1/6.6,
-  `experiments/results/bench_cpu_20261127_quick_fast.json`). XLA:CPU's switches do not close
-  the rest (docs/performance.md §2).
-  - the learning rate held near its base (half-life 200 000 steps): with a 15 000-step half-life
-    the curves flattened as the rate decayed.
-  Two data options and a masking floor make it split the full set; the model and the photometric
-  loss stay the paper's (experiments/README.md, "Fourth round" to "Sixth round"):
-  - `data.frame = "source_azimuth"`: positions in the source view's azimuth frame, so a masked
-    ray's position embedding says where the point appears in the source view
-    (docs/method.md §3.6);
-  - `data.ray_sampling = "contrast"`: half the rays drawn towards pixels that stand out from the
-    floor, 41 % of them on objects instead of 11 %;
-  - masking and slot noise annealed over 20 000 steps, locality 20 000, and a masking floor:
-    half the rays stay masked until step 40 000 (`train.mask_min`, `train.mask_min_steps`),
-    then the floor is lowered to 0 along a cosine over the last 10 000 of 50 000 steps
-    (`train.mask_min_release_steps`). Without the floor, slot attention's grouping of the source
-    view peaked while masking lasted and faded once it ended (FG-ARI 0.37 at step 30 000 on 20
-    validation scenes); with it the grouping kept rising (FG-ARI 0.82 at step 34 000). The
-    floor splits the floor of the scene over spare slots (NV-ARI 0.75); the release gathers
-    it. Released at once, every seed lost FG-ARI (test split: 0.76, 0.58, 0.54 for seeds 0, 1,
-    2); released gradually, 0.84, 0.73, 0.63, with NV-ARI 0.82, 0.81, 0.83. A floor of 0.25
-    from step 26 000 (seed 0) ends at 26.5 dB but FG-ARI 0.76: the same trade as training on
-    without the floor (experiments/README.md, "Eleventh round").
-  - the best checkpoint is the one with the best worse-of-two of validation FG-ARI and NV-ARI
-    (`train.select_by = "min_fg_nv"`): by NV-ARI alone, a release that merges objects wins.
-  - 50 000 steps, the floor held to step 40 000: best checkpoint against best checkpoint, seeds 0,
-    2 and 3 end where 60 000 steps (floor to 50 000) end, within one standard error in FG-ARI
-    (test split: 0.828, 0.869, 0.814 against 0.836, 0.865, 0.825; NV-ARI 0.847, 0.853, 0.872
-    against 0.856, 0.857, 0.856), in 79.5 min of training instead of 106 (seed 3, alone on the
-    slower host). Costs: the last checkpoint is less settled (seed 0's: FG-ARI 0.779), so the
-    run's result is its best checkpoint, which `--mode=eval` evaluates by default
-    (experiments/README.md, "Twenty-sixth round" to "Twenty-eighth round").
-  - a moving average of the parameters over the release (`train.ema_decay = 0.999` from
-    `train.ema_start_step = 40 000`, slotlifter_jax/averaging.py), which validation, the best
-    checkpoint, evaluation and pictures use; it never changes what trains. On the validation
-    split (100 scenes, last checkpoint, two seeds: 1000 and 1 on the 2026-11-28 host), the
-    average against the same run's trained parameters: FG-ARI +0.011 and +0.021, NV-ARI +0.003
-    and +0.006, novel PSNR +0.16 and +0.27 dB (paired standard errors 0.007, 0.001–0.002 and
-    0.03–0.04 dB). Costs: one more copy of the parameters in the optimiser state, so a run
-    started without it resumes only with `--config.train.ema_decay=0`, and `--params=trained`
-    evaluates what the run trained (experiments/README.md, "Thirty-first round").
-  - twice the paper's learning rate (`train.base_lr = 1e-4`), slot attention at twice that
-    (`train.slot_attention_lr_scale = 2`), and a restart check: an attempt whose worse of
-    validation FG-ARI and NV-ARI is below 0.55 at step 14 000 is moved to DIR/restarted/ and
-    trained again from seed + 1000, at most twice (`train.restarts`, `restart_check_step`,
-    `restart_min_score`). At 5e-5 seeds 0–4 ended at test FG-ARI 0.63–0.84; at 1e-4 three of five
-    passed both 0.8; with slot attention at twice the rate, four first attempts of five passed the
-    check and each of them both targets, and over 20 runs with a test evaluation the check kept
-    one that ended below the targets and restarted none that reached them (experiments/README.md,
-    "Fifteenth round" to "Twenty-second round"). Costs: a restarted attempt adds 14 000 steps
-    (about 12 min on the host of the 52-minute figures), and the pareto, ablation and stability
-    figures were measured at the 5e-5 recipe.
-  Measured with this recipe on the full clevr set (5–7 objects, K = 8): the README's first
-  command with `--config.seed=N`, N = 0–4, one run at a time on the 2026-11-28 host of a 2-core
-  CPU (mimalloc). Every seed meets FG-ARI and NV-ARI ≥ 0.8 on the 100-scene test split (best
-  checkpoint, the average: FG-ARI 0.815–0.868, NV-ARI 0.820–0.866, novel PSNR 25.7–26.1 dB),
-  seed 0 after one restart (as seed 1000), in 46–64 min of training each (README, "Objects
-  emerging"; experiments/README.md, "Thirtieth round" to "Thirty-second round"). On the 2.4×
-  slower 2026-11-27 host seed 3 trained in 79.5 min alone; there seeds 1 and 4 failed the
-  step-14 000 check, which adds 14 000 steps. Earlier recipes' seed tables (60 000 steps; base_lr 5e-5) are
-  in experiments/README.md, "Sixth round" to "Eighth round" and "Twenty-first round" to
-  "Twenty-fifth round".
+    python -m slotlifter_jax.main --config=configs/clevr.py:fast --workdir=DIR
+
+  Expected (best checkpoint with the moving average, 100 scenes of the development split, the
+  former test split): FG-ARI and NV-ARI ≥ 0.8 on five seeds of five, novel-view PSNR about 26 dB
+  (the README's results table, from `experiments/results/clevr_fast50k_*_test_metrics.json`; held
+  out: `experiments/results/headline_clevr.json` once evaluated). Time: 46–64 min for the 50 000
+  steps on the reference host (a 2-core AMD EPYC VM); a failed check adds 14 000 steps. Each cut,
+  what it saves and what it costs, and the probes behind the recipe: docs/fast_model.md.
   """
   if not tuple(c.data.get("scene_z_range", ())):
     raise ValueError(f"variant 'fast' samples rays only inside data.scene_z_range, which this "
