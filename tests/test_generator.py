@@ -164,7 +164,7 @@ def test_deterministic_and_independent_of_workers(clevr_root, tmp_path):
 def test_layout_and_metadata(clevr_root):
   splits = read_splits(clevr_root)
   assert [os.path.basename(p) for p, _ in splits] == [
-      "clevr_567_test", "clevr_567_train", "clevr_567_val"]
+      "clevr_567_dev", "clevr_567_test", "clevr_567_train", "clevr_567_val"]
   seen = set()
   for path, meta in splits:
     h = w = SIZES["clevr"]

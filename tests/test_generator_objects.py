@@ -157,3 +157,28 @@ def test_cli_rejects_min_objects_above_max_objects(tmp_path):
   last = result.stderr.strip().splitlines()[-1]
   assert last.startswith("error: --min_objects") and "max_objects" in last
   assert not os.listdir(tmp_path)
+
+
+def test_plain_background_draws_the_same_rooms_without_texture():
+  import numpy as np
+  from slotlifter_jax.data import embedded
+  from slotlifter_jax import defaults
+  draw = lambda plain: generator.generate_scene(
+      generator.scene_rng(seed=3, family="room", split="train", index=0), family="room", views=2,
+      image_size=24, plain_background=plain)
+  textured, plain = draw(False), draw(True)
+  # Every random draw is the same: chairs, cameras, hence masks and depth, to the bit.
+  assert plain.spec.objects == textured.spec.objects
+  np.testing.assert_array_equal(plain.cam_to_world, textured.cam_to_world)
+  np.testing.assert_array_equal(plain.label, textured.label)
+  np.testing.assert_array_equal(plain.depth, textured.depth)
+  # Only the floor and the walls lose their texture, keeping their base colour.
+  assert plain.spec.floor.texture == "plain" and plain.spec.floor.rgb == textured.spec.floor.rgb
+  assert all(w.texture == "plain" for w in plain.spec.walls)
+  assert textured.spec.floor.texture != "plain"
+  with pytest.raises(ValueError, match="plain_background") as info:
+    generator.check_object_options("clevr", plain_background=True)
+  assert info.value.field == "plain_background"
+  d = defaults.base_config().data
+  d.family, d.plain_background = "room", True
+  assert os.path.basename(embedded.dataset_dir(d, seed=0)).endswith("-plainbg")

@@ -67,11 +67,13 @@ def scene_rng(*, seed: int, family: str, split: str, index: int) -> np.random.Ge
 
 def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                    supersample: int = 2, max_attempts: int = 100, min_objects: int = 0,
-                   max_objects: int = 0, object_scale: float = 1.0) -> GeneratedScene:
+                   max_objects: int = 0, object_scale: float = 1.0,
+                   plain_background: bool = False) -> GeneratedScene:
   """Samples layouts and cameras until every object covers enough pixels of view 0, then renders.
 
   `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
-  select an easier set; see `sample_clevr_layout`.
+  select an easier set; see `sample_clevr_layout`. `plain_background` (room only): the same
+  scenes with untextured floor and walls (`sample_room_layout`).
 
   Renders on the CPU backend, so the files do not depend on the accelerator (if any) of the
   calling process, and a training process never shares its accelerator memory with the generator.
@@ -81,7 +83,7 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
     return _generate_scene(rng, family=family, views=views, image_size=image_size,
                            supersample=supersample, max_attempts=max_attempts,
                            min_objects=min_objects, max_objects=max_objects,
-                           object_scale=object_scale)
+                           object_scale=object_scale, plain_background=plain_background)
 
 
 def _cpu_device():
@@ -92,20 +94,42 @@ def _cpu_device():
     return None
 
 
-def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
-                    supersample: int, max_attempts: int, min_objects: int, max_objects: int,
-                    object_scale: float) -> GeneratedScene:
-  check_object_options(family, min_objects, max_objects, object_scale)
+def draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
+               supersample: int = 2, max_attempts: int = 100, min_objects: int = 0,
+               max_objects: int = 0, object_scale: float = 1.0,
+               plain_background: bool = False):
+  """The layout and cameras `generate_scene` draws from `rng`, without the final render:
+  (spec, cameras, cam_to_world [N, 4, 4], attempts). Scene edits (data/scene_edits.py) re-draw
+  a stored scene's SceneSpec with it, from the seed its dataset.json records."""
+  with jax.default_device(_cpu_device()):
+    return _draw_scene(rng, family=family, views=views, image_size=image_size,
+                       supersample=supersample, max_attempts=max_attempts,
+                       min_objects=min_objects, max_objects=max_objects,
+                       object_scale=object_scale, plain_background=plain_background)
+
+
+def render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
+                 supersample: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """(rgb [N, H, W, 3] uint8, label [N, H, W] int32, depth [N, H, W] float32) of `spec` seen by
+  the cameras cam_to_world [N, 4, 4] (world units): the arrays `generate_scene` stores."""
+  with jax.default_device(_cpu_device()):
+    return _render_scene(spec, cam_to_world, image_size=image_size, supersample=supersample)
+
+
+def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
+                supersample: int, max_attempts: int, min_objects: int, max_objects: int,
+                object_scale: float, plain_background: bool = False):
+  check_object_options(family, min_objects, max_objects, object_scale, plain_background)
   options = render_options(family, supersample)
-  k = uorf_intrinsics(image_size)
-  k32 = jnp.asarray(k, jnp.float32)
+  k32 = jnp.asarray(uorf_intrinsics(image_size), jnp.float32)
   threshold = min_visible_pixels(image_size)
   for attempt in range(1, max_attempts + 1):
     if family == "clevr":
       spec = sample_clevr_layout(rng, min_objects=min_objects, max_objects=max_objects,
                                  object_scale=object_scale)
     else:
-      spec = sample_room_layout(rng, min_objects=min_objects, max_objects=max_objects)
+      spec = sample_room_layout(rng, min_objects=min_objects, max_objects=max_objects,
+                                plain_background=plain_background)
     cameras = tuple(sample_cameras(rng, views))
     c2w = np.stack([camera_to_world(c) for c in cameras])
     arrays = scene_arrays(spec)
@@ -115,17 +139,31 @@ def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_
                               intrinsics=k32, image_size=image_size, options=options)
     counts = np.bincount(np.asarray(labels[0]).ravel(), minlength=len(spec.objects) + 1)
     if np.all(counts[1:len(spec.objects) + 1] >= threshold):
-      break
-  else:
-    raise RuntimeError(f"no {family} layout with every object visible after {max_attempts} tries")
-  out = render_views(arrays, cam_to_world=jnp.asarray(c2w, jnp.float32), intrinsics=k32,
-                     image_size=image_size, options=options)
+      return spec, cameras, c2w, attempt
+  raise RuntimeError(f"no {family} layout with every object visible after {max_attempts} tries")
+
+
+def _render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
+                  supersample: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  out = render_views(scene_arrays(spec), cam_to_world=jnp.asarray(cam_to_world, jnp.float32),
+                     intrinsics=jnp.asarray(uorf_intrinsics(image_size), jnp.float32),
+                     image_size=image_size, options=render_options(spec.family, supersample))
   rgb = np.asarray(out.rgb, np.float32)
-  return GeneratedScene(
-      spec=spec, cameras=cameras, cam_to_world=c2w, intrinsics=k,
-      rgb=np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8),
-      label=np.asarray(out.label, np.int32), depth=np.asarray(out.depth, np.float32),
-      attempts=attempt)
+  return (np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8),
+          np.asarray(out.label, np.int32), np.asarray(out.depth, np.float32))
+
+
+def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
+                    supersample: int, max_attempts: int, min_objects: int, max_objects: int,
+                    object_scale: float, plain_background: bool = False) -> GeneratedScene:
+  spec, cameras, c2w, attempts = _draw_scene(
+      rng, family=family, views=views, image_size=image_size, supersample=supersample,
+      max_attempts=max_attempts, min_objects=min_objects, max_objects=max_objects,
+      object_scale=object_scale, plain_background=plain_background)
+  rgb, label, depth = _render_scene(spec, c2w, image_size=image_size, supersample=supersample)
+  return GeneratedScene(spec=spec, cameras=cameras, cam_to_world=c2w,
+                        intrinsics=uorf_intrinsics(image_size), rgb=rgb, label=label, depth=depth,
+                        attempts=attempts)
 
 
 # =============================================================================================
@@ -163,6 +201,7 @@ class _SceneTask:
   min_objects: int = 0
   max_objects: int = 0
   object_scale: float = 1.0
+  plain_background: bool = False
 
 
 def _write_scene(task: _SceneTask) -> dict:
@@ -170,7 +209,8 @@ def _write_scene(task: _SceneTask) -> dict:
   rng = scene_rng(seed=task.seed, family=task.family, split=task.split, index=task.index)
   scene = generate_scene(rng, family=task.family, views=task.views, image_size=task.image_size,
                          supersample=task.supersample, min_objects=task.min_objects,
-                         max_objects=task.max_objects, object_scale=task.object_scale)
+                         max_objects=task.max_objects, object_scale=task.object_scale,
+                         plain_background=task.plain_background)
   k_norm = normalised_intrinsics(scene.intrinsics, task.image_size)
   stems = []
   for a in range(task.views):
@@ -204,7 +244,7 @@ def _worker_init() -> None:
 
 def _split_header(*, family: str, split: str, seed: int, views: int, image_size: int,
                   num_scenes: int, supersample: int, min_objects: int = 0, max_objects: int = 0,
-                  object_scale: float = 1.0) -> dict:
+                  object_scale: float = 1.0, plain_background: bool = False) -> dict:
   k = uorf_intrinsics(image_size)
   header = {
       "format": "slotlifter_jax.generated", "generator_version": GENERATOR_VERSION,
@@ -230,10 +270,12 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
   }
   # Only non-default sets record their object options, so default dataset.json files are unchanged
   # (and _existing_split_matches tells the two apart by the key's presence).
-  if not is_default_objects(family, min_objects, max_objects, object_scale):
+  if not is_default_objects(family, min_objects, max_objects, object_scale, plain_background):
     lo, hi = object_count_range(family, min_objects, max_objects)
     header["objects"] = {"min_objects": lo, "max_objects": hi,
                          "object_scale": float(object_scale)}
+    if plain_background:
+      header["objects"]["plain_background"] = True
   return header
 
 
@@ -253,7 +295,8 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
                      seed: int = 0,
                      num_workers: Optional[int] = None, progress: bool = True,
                      overwrite: bool = False, supersample: int = 2, min_objects: int = 0,
-                     max_objects: int = 0, object_scale: float = 1.0) -> dict:
+                     max_objects: int = 0, object_scale: float = 1.0,
+                     plain_background: bool = False) -> dict:
   """Writes <out_dir>/<subset>_{train,val,dev,test} and returns a summary (seconds per split).
 
   `num_dev` (None: as many as `num_test`) scenes of the development split, the former test split
@@ -262,6 +305,7 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
   `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
   select an easier set (`sample_clevr_layout`); its dataset.json headers record them under
   "objects", and each scene's entry lists its objects. The folder names stay the family's.
+  `plain_background` (room only) draws the same scenes with untextured floor and walls.
 
   A split whose folder already holds a dataset.json with the same generation parameters is kept
   as it is (this resumes an interrupted run); any other non-empty split folder is an error unless
@@ -276,8 +320,9 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
     raise ValueError(f"unknown family {family!r}; choose one of {FAMILIES}")
   if views < 1 or image_size < 8:
     raise ValueError(f"need views ≥ 1 and image_size ≥ 8, got {views}, {image_size}")
-  check_object_options(family, min_objects, max_objects, object_scale)
-  objects = dict(min_objects=min_objects, max_objects=max_objects, object_scale=object_scale)
+  check_object_options(family, min_objects, max_objects, object_scale, plain_background)
+  objects = dict(min_objects=min_objects, max_objects=max_objects, object_scale=object_scale,
+                 plain_background=plain_background)
   subset = SUBSETS[family]
   if num_dev is None:
     num_dev = num_test
