@@ -1,4 +1,4 @@
-"""experiments/early_check.py on hand-written validation logs and test metrics."""
+"""experiments/early_check.py on hand-written validation logs: it reads validation only."""
 
 import json
 import os
@@ -9,15 +9,17 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPT = os.path.join(REPO, "experiments", "early_check.py")
 
 
-def _write_run(folder, name, val_rows, test=None):
-  """val_rows: (step, fg_ari, nv_ari); test: (fg_ari, nv_ari) or None."""
+def _write_run(folder, name, val_rows, slots=None):
+  """val_rows: (step, fg_ari, nv_ari); slots: {step: mf_active_slots} or None."""
   path = folder / f"{name}_val_metrics.jsonl"
   with open(path, "w") as f:
     for step, fg, nv in val_rows:
-      f.write(json.dumps(dict(step=step, kind="val", fg_ari=fg, nv_ari=nv)) + "\n")
-  if test is not None:
-    metrics = dict(fg_ari=dict(mean=test[0]), nv_ari=dict(mean=test[1]))
-    (folder / f"{name}_test_metrics.json").write_text(json.dumps(dict(metrics=metrics)))
+      row = dict(step=step, kind="val", fg_ari=fg, nv_ari=nv)
+      if slots and step in slots:
+        row["mf_active_slots"] = slots[step]
+      f.write(json.dumps(row) + "\n")
+  # A test evaluation beside it must change nothing: the tool never reads it.
+  (folder / f"{name}_test_metrics.json").write_text("not json: opening this is a failure")
   return str(path)
 
 
@@ -26,31 +28,46 @@ def _run(*args):
                         timeout=60)
 
 
+def _rows(stdout):
+  return {line.split(" | ")[0].lstrip("| "): line for line in stdout.splitlines()
+          if line.startswith("| ") and not line.startswith("| run")}
+
+
 def test_rule_outcomes_and_counts_by_hand(tmp_path):
   runs = [
-      # kept (0.60 ≥ 0.55) and passes: the worse of FG 0.70 and NV 0.60 is what counts
-      _write_run(tmp_path, "a", [(2, 0.1, 0.1), (4, 0.70, 0.60), (6, 0.9, 0.9)], (0.85, 0.82)),
-      # restarted (NV 0.50) and fails: the rule was right
-      _write_run(tmp_path, "b", [(4, 0.80, 0.50), (6, 0.9, 0.5)], (0.86, 0.52)),
-      # kept and fails on FG (0.79 < 0.8): a miss of the rule
-      _write_run(tmp_path, "c", [(4, 0.56, 0.70)], (0.79, 0.90)),
-      # restarted although it passes: the other kind of miss; resumed, step 4 logged twice
-      _write_run(tmp_path, "d", [(4, 0.10, 0.10), (4, 0.54, 0.90), (6, 0.8, 0.8)], (0.81, 0.80)),
-      # no test evaluation: judged by nothing
-      _write_run(tmp_path, "e", [(4, 0.3, 0.3)]),
+      # kept (0.60 ≥ 0.55) and ends split: the worse of FG 0.70 and NV 0.60 is what counts
+      _write_run(tmp_path, "a", [(2, 0.1, 0.1), (4, 0.70, 0.60), (6, 0.9, 0.85)], {4: 4.0}),
+      # restarted (NV 0.50) and never split: the rule was right
+      _write_run(tmp_path, "b", [(4, 0.80, 0.50), (6, 0.9, 0.5)], {4: 4.0}),
+      # kept and ends below on FG (0.79 < 0.8): a miss of the rule
+      _write_run(tmp_path, "c", [(4, 0.56, 0.70), (6, 0.79, 0.9)], {4: 2.0}),
+      # restarted although it ends split; resumed, step 4 logged twice (the later row counts)
+      _write_run(tmp_path, "d", [(4, 0.10, 0.10), (4, 0.54, 0.90), (6, 0.8, 0.8)]),
   ]
-  result = _run("--step=4", "--min_score=0.55", *runs)
+  result = _run("--step=4", "--min_score=0.55", "--min_active_slots=3", *runs)
   assert result.returncode == 0, result.stderr
-  rows = {line.split(" | ")[0].lstrip("| "): line for line in result.stdout.splitlines()
-          if line.startswith("| ") and not line.startswith("| run")}
-  assert "| 0.600 | keep | 0.900 (step 6) | 0.850 | 0.820 | yes |" in rows["a"]
-  assert "| 0.500 | restart | 0.500 (step 6) | 0.860 | 0.520 | no |" in rows["b"]
-  assert "| 0.560 | keep |" in rows["c"] and rows["c"].endswith("| no |")
-  assert "| 0.540 | restart |" in rows["d"] and rows["d"].endswith("| yes |")
-  assert rows["e"].endswith("| – | – | – |")
-  assert result.stdout.splitlines()[-1] == (
-      "4 runs with a test evaluation: the rule keeps 1 that end below the target and restarts 1 "
-      "that reach it")
+  rows = _rows(result.stdout)
+  assert "| 0.600 | keep | 0.850 (6) | yes | 4.00 | keep |" in rows["a"]
+  assert "| 0.500 | restart | 0.500 (4) | no | 4.00 | keep |" in rows["b"]
+  assert "| 0.560 | keep | 0.790 (6) | no | 2.00 | restart |" in rows["c"]
+  assert "| 0.540 | restart | 0.800 (6) | yes | – | – |" in rows["d"]
+  lines = result.stdout.splitlines()
+  assert lines[-2] == "4 runs: the rule keeps 1 that end below the target and restarts 1 that reach it"
+  # a keeps with both, b and c are decided differently, d has no mask-free statistics
+  assert lines[-1] == "3 runs log the mask-free statistics: the two rules decide alike on 1"
+
+
+def test_sweep_ranks_rules_by_misjudged_runs(tmp_path):
+  runs = [_write_run(tmp_path, "a", [(2, 0.30, 0.30), (4, 0.62, 0.7), (6, 0.9, 0.9)]),
+          _write_run(tmp_path, "b", [(2, 0.50, 0.50), (4, 0.40, 0.7), (6, 0.5, 0.5)]),
+          _write_run(tmp_path, "c", [(2, 0.35, 0.40), (4, 0.58, 0.6), (6, 0.85, 0.81)])]
+  result = _run("--sweep", "--top=3", *runs)
+  assert result.returncode == 0, result.stderr
+  lines = result.stdout.splitlines()
+  assert lines[0] == "3 runs, 2 of which end split (best validation min(FG, NV) ≥ 0.8)"
+  # Step 4 separates them from 0.45 to 0.55 (a, c ≥ 0.58 end split, b at 0.40 does not); step 2
+  # cannot at any threshold of the grid (b, which never splits, is highest there).
+  assert lines[3:6] == ["| 4 | 0.45 | 0 | 0 |", "| 4 | 0.50 | 0 | 0 |", "| 4 | 0.55 | 0 | 0 |"]
 
 
 def test_a_missing_step_or_file_is_one_line(tmp_path):
