@@ -7,6 +7,8 @@
 - XLA's CPU backend compiles at -O0, with its older loop emitters, for the whole session,
   subprocesses included.
 - The heaviest files are collected first (HEAVIEST_FIRST).
+- Whole files that build and compile models are marked slow (SLOW_FILES): `pytest -m "not slow"`
+  is the fast tier.
 """
 
 import os
@@ -52,9 +54,26 @@ HEAVIEST_FIRST = (
 )
 
 
+# The fast tier (`pytest -m "not slow"`, the README's day-to-day command) leaves out, besides the
+# tests marked @pytest.mark.slow, every test of the files below: each trains, evaluates or compiles
+# whole models (smoke-sized, but a compile is 10–60 s of one core at -O0), or starts processes that
+# do. Chosen from the per-file compile and subprocess times of experiments/suite_accounting.py
+# (experiments/results/suite_accounting_cpu_20261202_amx.json: every file here spends 10 s or more
+# there) and, for files it predates, from what they build. The full suite (`pytest -q`, CI) runs
+# them all.
+SLOW_FILES = frozenset(HEAVIEST_FIRST) | {
+    "test_notebook.py", "test_generator.py", "test_locality_attention.py", "test_encoder.py",
+    "test_programs.py", "test_slot_attention.py", "test_study_workdirs.py",
+    "test_suite_accounting.py", "test_suite_order.py", "test_ab_step.py",
+}
+
+
 def pytest_collection_modifyitems(items):
   rank = {name: i for i, name in enumerate(HEAVIEST_FIRST)}
   items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: ties keep their order
+  for item in items:
+    if item.path.name in SLOW_FILES:
+      item.add_marker(pytest.mark.slow)
 
 
 @pytest.fixture(scope="session", autouse=True)

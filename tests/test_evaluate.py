@@ -17,6 +17,7 @@ import pytest
 from PIL import Image
 
 from slotlifter_jax import checkpoints as ckpt_lib
+from slotlifter_jax import emergence
 from slotlifter_jax import evaluate
 from slotlifter_jax import train
 from slotlifter_jax import validation
@@ -48,10 +49,18 @@ def test_eval_writes_metrics_and_refuses_to_overwrite(run_dir):
   with open(path) as f:
     report = json.load(f)
 
-  # The best checkpoint, as the orbax folder names it.
-  best_steps = [int(s) for s in os.listdir(os.path.join(run_dir, "checkpoints", "best"))
-                if s.isdigit()]
-  assert report["checkpoint"]["step"] == max(best_steps)
+  # The best checkpoint holds the run's highest validation score, as its metrics log records it
+  # (the score is train.select_by's, logged with each validation).
+  validations = [r for r in emergence.load_records(os.path.join(run_dir, "metrics.jsonl"))
+                 if r.get("kind") == "val"]
+  assert len(validations) >= 2, validations  # a choice between checkpoints was made
+  score = {int(r["step"]): r["score"] for r in validations}
+  assert score[report["checkpoint"]["step"]] == max(score.values()), (report["checkpoint"], score)
+  # Where the numbers came from (slotlifter_jax/provenance.py).
+  record = report["provenance"]
+  assert record["config"]["model"] == json.loads(config.model.to_json_best_effort())
+  assert record["jax"] == jax.__version__ and record["wall_s"] > 0
+  assert record["platform"] == jax.devices()[0].platform
   num_scenes = config.data.num_test_scenes
   assert report["num_scenes"] == num_scenes
   assert report["quirks"] == {"lpips_quirk": False, "nv_ari_last_view": False}
