@@ -5,6 +5,8 @@ DIR/eval/<split>/), render (panels and orbit GIFs of chosen scenes into DIR/rend
   --mode=eval --split=test --checkpoint=best|latest|<step> [--overwrite] [--max_scenes=N]
               [--lpips_quirk] [--nv_ari_last_view] [--params=average|trained]
   --mode=render --split=test --scenes=0,3,5 --orbit_frames=24
+  --mode=edit --split=test [--max_scenes=N] [--overwrite]  (object edits scored, docs/editing.md)
+  --mode=edit --scenes=0,3 --remove_slot=K | --move_slot=K --by=dx,dy,dz  (pictures of one edit)
 Several processes (one per host or per GPU): the same command on each, with --distributed and
   --coordinator_address=HOST:PORT --num_processes=N --process_id=I (or JAX_COORDINATOR_ADDRESS;
   under SLURM or Open MPI jax finds all three itself); process 0 writes the files.
@@ -21,7 +23,7 @@ from slotlifter_jax import runtime
 config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/clevr.py:quick.",
                                 lock_config=True)
 flags.DEFINE_string("workdir", None, "Run directory: checkpoints, metrics, pictures.")
-flags.DEFINE_enum("mode", "train", ["train", "eval", "render"], "What to do.")
+flags.DEFINE_enum("mode", "train", ["train", "eval", "render", "edit"], "What to do.")
 flags.DEFINE_bool("distributed", False, "Call jax.distributed.initialize(): one of several "
                   "processes training one run (slotlifter_jax/multihost.py).")
 flags.DEFINE_string("coordinator_address", None, "--distributed: HOST:PORT of process 0's "
@@ -45,6 +47,12 @@ flags.DEFINE_enum("params", "average", ["average", "trained"], "eval/render: a r
                   "average unless this says trained.")
 flags.DEFINE_string("scenes", "0", "render: comma-separated scene indices into the split.")
 flags.DEFINE_integer("orbit_frames", 24, "render: frames of the orbit GIF (at most 64).")
+flags.DEFINE_integer("remove_slot", None, "edit: render the chosen --scenes without this slot "
+                     "(0 … K-1) instead of scoring the split's object edits.")
+flags.DEFINE_integer("move_slot", None, "edit: render the chosen --scenes with this slot moved "
+                     "by --by.")
+flags.DEFINE_string("by", "", "edit: --move_slot's translation dx,dy,dz in the data set's world "
+                    "units and axes.")
 flags.mark_flags_as_required(["config", "workdir"])
 FLAGS = flags.FLAGS
 
@@ -69,6 +77,9 @@ def main(argv):
   if not FLAGS.distributed and any(
       FLAGS[f].present for f in ("coordinator_address", "num_processes", "process_id")):
     sys.exit("error: --coordinator_address, --num_processes and --process_id need --distributed")
+  stray = [f for f in ("remove_slot", "move_slot", "by") if FLAGS[f].present]
+  if stray and FLAGS.mode != "edit":
+    sys.exit(f"error: --{stray[0]}: only with --mode=edit")
   # Before JAX starts (seconds on a CPU) and before the processes of a --distributed launch
   # connect: a bad field is reported at once, and by every process alike.
   try:
@@ -111,6 +122,16 @@ def main(argv):
           overwrite=FLAGS.overwrite, max_scenes=FLAGS.max_scenes, lpips_quirk=FLAGS.lpips_quirk,
           nv_ari_last_view=FLAGS.nv_ari_last_view, params=FLAGS.params)
       say(evaluate.format_table(result))
+    elif FLAGS.mode == "edit":
+      from slotlifter_jax import edit
+      try:
+        say(edit.run(FLAGS.config, FLAGS.workdir, split=FLAGS.split, scenes=FLAGS.scenes,
+                     remove_slot=FLAGS.remove_slot, move_slot=FLAGS.move_slot, by=FLAGS.by,
+                     checkpoint=FLAGS.checkpoint, params=FLAGS.params,
+                     max_scenes=FLAGS.max_scenes, overwrite=FLAGS.overwrite,
+                     orbit_frames=FLAGS.orbit_frames))
+      except edit.EditFlagError as e:
+        sys.exit(f"error: {e}")  # the message starts with the flag
     else:
       for files in pictures.render_scenes(
           FLAGS.config, FLAGS.workdir, split=FLAGS.split,
