@@ -3,8 +3,9 @@
   python experiments/ray_foreground_share.py [--config=configs/clevr.py:quick] [--scenes=20]
 
 Draws 50 training batches from the validation scenes (they have ground-truth masks; the sampler
-never looks at them) and prints the fraction of rays whose pixel is foreground, for uniform
-sampling and contrast sampling at a few mixes, next to the foreground share of the pixels.
+never looks at them) and prints the fraction of rays whose pixel is foreground, for uniform,
+contrast and (sets with a floor at z = 0) floor-parallax sampling at a few mixes, next to the
+foreground share of the pixels.
 Then, per object and view, how many times more likely contrast sampling (mix 0.5) is to draw one
 of the object's pixels than uniform sampling, for grey objects (colour saturation < 0.05, the
 ones that look like the grey floor) and coloured ones.
@@ -55,7 +56,10 @@ def main():
   scenes = registry.load_split(config.data, "val", max_scenes=args.scenes)
   print(f"{len(scenes)} val scenes of {config.data.root}: foreground share of pixels "
         f"{np.mean([(s.masks > 0).mean() for s in scenes]):.3f}")
-  for mode, mix in [("uniform", 0.0), ("contrast", 0.5), ("contrast", 0.8)]:
+  modes = [("uniform", 0.0), ("contrast", 0.5), ("contrast", 0.8)]
+  if config.data.format in ("uorf", "uocf"):  # a floor at z = 0
+    modes += [("floor_parallax", 0.5), ("floor_parallax", 0.8)]
+  for mode, mix in modes:
     sampler = pipeline.BatchSampler(
         scenes, batch_scenes=config.train.batch_scenes, rays_per_scene=config.train.rays_per_scene,
         num_source_views=config.data.num_source_views, novel_ray_prob=config.data.novel_ray_prob,
@@ -66,7 +70,7 @@ def main():
       for b, s in enumerate(draw.scene_index):
         labels = scenes[s].masks[draw.ray_views[b], draw.ray_rows[b], draw.ray_cols[b]]
         shares.append((labels > 0).mean())
-    print(f"ray_sampling={mode:8s} contrast_mix={mix:.1f}: foreground share of rays "
+    print(f"ray_sampling={mode:14s} contrast_mix={mix:.1f}: foreground share of rays "
           f"{np.mean(shares):.3f}")
   factors = {"grey": [], "coloured": []}
   for scene in scenes:

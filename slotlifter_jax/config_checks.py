@@ -64,6 +64,10 @@ def data_problem(data) -> Optional[str]:
   """data.format has a reader and data.frame is one the readers can put the poses in."""
   if data.format not in DATA_FORMATS:
     return f"data.format must be one of {DATA_FORMATS}, got {data.format!r}"
+  if data.get("ray_sampling", "uniform") == "floor_parallax" and data.format not in ("uorf",
+                                                                                      "uocf"):
+    return (f"data.ray_sampling='floor_parallax' reprojects through the floor plane z = 0 of the "
+            f"uORF-style sets; data.format={data.format!r} has no such floor")
   frame = data.get("frame", "world")
   if frame not in FRAMES:
     return f"data.frame must be one of {FRAMES}, got {frame!r}"

@@ -378,3 +378,58 @@ def test_bad_stages_are_named():
   with pytest.raises(ValueError, match=r"train.ray_stages: 30 \(stage from step 2\) is not a "
                                        r"multiple of 4"):
     config_checks.check_stages(((2, 30),), field="train.ray_stages", upper=100, multiple_of=4)
+
+
+def test_floor_reprojection_error_is_exact_for_one_camera_twice():
+  # Two views from the same pose: every ray that meets the floor reprojects onto its own pixel,
+  # so the error is the colour difference of the two images there, whatever the texture.
+  rng = np.random.default_rng(0)
+  h = w = 12
+  pose = cameras.look_at_cam_to_world(np.array([1.2, -0.9, 1.1]))
+  k = np.array([[14.0, 0, (w - 1) / 2], [0, 14.0, (h - 1) / 2], [0, 0, 1]])
+  first = rng.uniform(size=(h, w, 3)).astype(np.float32)
+  second = first.copy()
+  second[3:5, 6:9] += 0.25  # "an object" in the second view only
+  scene = Scene(name="twice", images=np.stack([first, second]),
+                cam_to_world=np.stack([pose, pose]).astype(np.float32),
+                intrinsics=np.stack([k, k]).astype(np.float32), source_indices=(0,))
+  error = pipeline.floor_reprojection_error(scene).reshape(2, h, w)
+  expected = np.linalg.norm(second.astype(np.float64) - first, axis=-1)
+  # Rays above the horizon never meet the floor: 0 there.
+  v, u = np.mgrid[0:h, 0:w]
+  dirs = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones((h, w))], -1)
+  meets_floor = (dirs @ pose[:3, :3].T)[..., 2] < -1e-6
+  assert meets_floor.mean() > 0.5
+  np.testing.assert_allclose(error[0], np.where(meets_floor, expected, 0.0), atol=1e-6)
+  np.testing.assert_allclose(error[1], np.where(meets_floor, expected, 0.0), atol=1e-6)
+
+
+def test_floor_parallax_weights_favour_chairs_on_a_textured_floor():
+  from slotlifter_jax.data import generator
+  from slotlifter_jax.data import layout
+  g = generator.generate_scene(generator.scene_rng(seed=1, family="room", split="val", index=2),
+                               family="room", views=4, image_size=48)
+  poses = g.cam_to_world.copy()
+  poses[:, :3, 3] *= layout.SCENE_SCALE  # the readers' normalised frame
+  scene = Scene(name="room", images=g.rgb.astype(np.float32) / 255.0,
+                cam_to_world=poses.astype(np.float32), intrinsics=np.stack([g.intrinsics] * 4),
+                source_indices=(0,), masks=g.label)
+  assert scene.images.std() > 0.05
+  error = pipeline.floor_reprojection_error(scene).reshape(g.label.shape)
+  # Ground truth from the ray caster: floor pixels are background at depth on the plane z = 0.
+  k = g.intrinsics
+  v, u = np.mgrid[0:48, 0:48]
+  z_world = []
+  for a in range(4):
+    cam = np.stack([(u - k[0, 2]) / k[0, 0], (v - k[1, 2]) / k[1, 1], np.ones((48, 48))], -1)
+    z_world.append((cam * g.depth[a][..., None]) @ g.cam_to_world[a, :3, :3].T[:, 2]
+                   + g.cam_to_world[a, 2, 3])
+  floor = (g.label == 0) & (np.abs(np.stack(z_world)) < 1e-3)
+  on_chairs = g.label > 0
+  assert floor.sum() > 1000 and on_chairs.sum() > 100
+  # A floor point shows the same texture from every view (up to the nearest-pixel lookup), a
+  # chair pixel's floor point shows floor: several times the error.
+  assert np.median(error[on_chairs]) > 4 * np.median(error[floor])
+  weights = pipeline.parallax_weights(scene).reshape(g.label.shape)
+  np.testing.assert_allclose(weights.reshape(4, -1).sum(axis=1), 1.0, rtol=1e-5)
+  assert weights[on_chairs].sum() / 4 > 2 * on_chairs.mean()
