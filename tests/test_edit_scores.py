@@ -158,3 +158,24 @@ def test_edit_flags_are_checked_and_named():
     assert isinstance(e.value, ValueError)
   with pytest.raises(edit.EditFlagError, match="^--scenes: "):
     edit.parse_scenes("0,x")
+
+
+def test_world_translations_turn_with_the_source_azimuth_frame():
+  """With data.frame = "source_azimuth" the turn `edit` finds puts the world's source camera at
+  azimuth 0, where the model-frame scene has it (docs/method.md §3.6)."""
+  from slotlifter_jax.data import embedded
+  from slotlifter_jax.data import registry
+  from train_helpers import load_config
+  config = embedded.resolve_data(load_config())
+  with config.unlocked():
+    config.data.frame = "source_azimuth"
+  scene = registry.load_split(config.data, "test", max_scenes=2)[1]
+  rot = edit._world_rotation(config, "test", 1, scene)
+  world = config.data.copy_and_resolve_references()
+  with world.unlocked():
+    world.frame = "world"
+  eye = registry.load_split(world, "test", max_scenes=2)[1].cam_to_world[0, :3, 3]
+  turned = rot @ eye
+  assert turned[0] > 0 and abs(turned[1]) < 1e-5 and turned[2] == pytest.approx(eye[2])
+  np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-5)
+  np.testing.assert_allclose(turned, scene.cam_to_world[0, :3, 3], atol=1e-5)
