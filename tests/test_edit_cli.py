@@ -11,6 +11,8 @@ import sys
 import pytest
 
 from slotlifter_jax import edit
+from slotlifter_jax import edit_eval
+from slotlifter_jax import edit_scores
 from slotlifter_jax import train
 from slotlifter_jax.data import registry
 from slotlifter_jax.data import scene_edits
@@ -75,7 +77,7 @@ def test_edit_scores_a_split_from_the_command_line(run_dir):
   prov = report["provenance"]
   assert prov["config"]["model"]["num_slots"] == 4 and "cpu_model" in prov
   assert "git_commit" in prov
-  assert report["settings"]["match_iou"] == edit.edit_scores.MATCH_IOU
+  assert report["settings"]["match_iou"] == edit_scores.MATCH_IOU
   # Again without --overwrite: refused, the file kept.
   with open(path, "rb") as f:
     kept = f.read()
@@ -104,7 +106,7 @@ def test_scoring_path_and_one_edit_pictures(run_dir, tmp_path):
   checkpoints = _tree_digest(os.path.join(run_dir, "checkpoints"))
   # An untrained smoke model matches no object at IoU 0.5; at 0 every object has a slot, so
   # every edit of the first scene is rendered and scored.
-  report = edit.score_split(config, run_dir, max_scenes=1, overwrite=True, progress=False,
+  report = edit_eval.score_split(config, run_dir, max_scenes=1, overwrite=True, progress=False,
                             match_iou=0.0)
   num_objects = _objects_in_first_scene(config)
   assert report["remove"]["num_edits"] == num_objects and report["remove"]["num_skipped"] == 0
