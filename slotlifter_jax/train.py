@@ -29,6 +29,7 @@ from slotlifter_jax import config_checks
 from slotlifter_jax.config_checks import ConfigError
 from slotlifter_jax import model as model_lib
 from slotlifter_jax import multihost
+from slotlifter_jax import provenance
 from slotlifter_jax import restarts
 from slotlifter_jax import train_step as step_lib
 from slotlifter_jax import emergence
@@ -160,6 +161,20 @@ def _record_emergence(workdir: str) -> None:
     logging.info("%s", line)
 
 
+MACHINES_FILE = "machines.jsonl"
+
+
+def _record_machine(workdir: str, step: int) -> None:
+  """Appends where this session of the run trains (CPU, its extensions, JAX's device, the commit)
+  to DIR/machines.jsonl: a run's wall time means little without its hosts, and a resumed or
+  restarted run may have trained on several. The file stays in the run folder across restarts,
+  as the wall clock does."""
+  record = dict(step=int(step), time=time.time(), **provenance.cpu_info(),
+                **provenance.device_info(), git_commit=provenance.git_commit())
+  with open(os.path.join(workdir, MACHINES_FILE), "a") as f:
+    f.write(json.dumps(record) + "\n")
+
+
 def _process_local(tree):
   """This process's copy of a replicated tree: with several processes, validation renders on the
   local device alone (the same program and numbers as on one process, with no cross-process step
@@ -251,6 +266,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
 
   start = int(state.step)
   total = config.train.num_steps
+  if primary:
+    _record_machine(workdir, start)
   last_val = {}
   restart = None  # why this attempt gives way to a new seed
   interrupted = None

@@ -2,6 +2,7 @@
 and never opened by training, validation or the choice of a checkpoint or a restart."""
 
 import hashlib
+import json
 import os
 import sys
 
@@ -83,5 +84,9 @@ def test_training_validation_and_selection_never_open_the_heldout_split(tmp_path
   finally:
     watching["on"] = False
   assert os.path.isdir(tmp_path / "run" / "restarted")  # the check ran and chose
+  # Each training session (the first attempt, the restarted one) recorded its machine.
+  with open(tmp_path / "run" / "machines.jsonl") as f:
+    machines = [json.loads(line) for line in f]
+  assert [m["step"] for m in machines] == [0, 0] and all("cpu_model" in m for m in machines)
   assert any(p.startswith(os.path.realpath(root)) for p in opened)  # it did read the data
   assert not [p for p in opened if p.startswith(heldout)]

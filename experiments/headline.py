@@ -1,0 +1,116 @@
+"""A data set's headline result from its seeds' run folders: one JSON file the README's tables are
+written from (experiments/tables.py).
+
+    python experiments/headline.py --name=room --split=test \
+        --out=experiments/results/headline_room.json runs/room_seed0 runs/room_seed1 ...
+
+Each RUN is a run folder of the training command, evaluated with `--mode=eval --split=SPLIT`.
+Per seed it records FG-ARI, NV-ARI and novel-view PSNR (means and standard errors over the
+split's scenes), the checkpoint evaluated, the attempts (1 + the restarts the run made), the
+training wall time in minutes (restarts included: `wall_s` of the run's last training record),
+the hosts it trained on (DIR/machines.jsonl) and the commit of the evaluation; then the mean ±
+sample standard deviation over the seeds, and the split's name. A run without that evaluation is
+an error naming the file: a headline never mixes splits or leaves a seed out silently.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from slotlifter_jax import emergence  # noqa: E402  (no JAX)
+from slotlifter_jax import restarts  # noqa: E402
+
+KEYS = ("fg_ari", "nv_ari", "psnr_novel")
+
+
+def _load_json(path: str) -> dict:
+  try:
+    with open(path) as f:
+      return json.load(f)
+  except FileNotFoundError:
+    raise ValueError(f"{path}: no such file") from None
+  except json.JSONDecodeError as e:
+    raise ValueError(f"{path}: not valid JSON ({e})") from None
+
+
+def seed_row(run: str, split: str) -> dict:
+  """One seed's entry from its run folder (module doc)."""
+  evaluation = _load_json(os.path.join(run, "eval", split, "metrics.json"))
+  metrics = evaluation.get("metrics", {})
+  missing = [k for k in KEYS if k not in metrics]
+  if missing:
+    raise ValueError(f"{os.path.join(run, 'eval', split, 'metrics.json')}: no {missing}")
+  config = _load_json(os.path.join(run, "config.json"))
+  attempts = restarts.archived_attempts(run)
+  first_seed = restarts.attempt_seed(attempts[0]) if attempts else int(config["seed"])
+  log = os.path.join(run, "metrics.jsonl")
+  train = emergence.latest_records(emergence.load_records(log), "train") if os.path.exists(
+      log) else []
+  wall_s = max((float(r["wall_s"]) for r in train if "wall_s" in r), default=math.nan)
+  hosts = []
+  machines = os.path.join(run, "machines.jsonl")
+  if os.path.exists(machines):
+    with open(machines) as f:
+      for line in f:
+        host = json.loads(line)
+        name = host.get("cpu_model", "") if host.get("platform") == "cpu" else host.get(
+            "device_kind", "")
+        if name and name not in hosts:
+          hosts.append(name)
+  checkpoint = evaluation.get("checkpoint", {})
+  row = dict(run=run, seed=first_seed, final_seed=int(config["seed"]),
+             attempts=len(attempts) + 1,
+             wall_minutes=None if math.isnan(wall_s) else round(wall_s / 60.0, 1),
+             hosts=hosts, checkpoint=checkpoint,
+             eval_commit=evaluation.get("provenance", {}).get("git_commit"))
+  for k in KEYS:
+    row[k] = float(metrics[k]["mean"])
+    row[f"{k}_stderr"] = float(metrics[k].get("stderr", math.nan))
+  return row
+
+
+def headline(runs: list[str], *, name: str, split: str) -> dict:
+  rows = sorted((seed_row(r, split) for r in runs), key=lambda r: r["seed"])
+  summary = {}
+  for k in KEYS:
+    values = [r[k] for r in rows]
+    mean = sum(values) / len(values)
+    std = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1)) if len(
+        values) > 1 else math.nan
+    summary[k] = dict(mean=mean, std=std)
+  return dict(name=name, split=split, num_seeds=len(rows), seeds=rows, summary=summary,
+              collapsed_seeds=sum(r["fg_ari"] < 0.5 for r in rows))
+
+
+def main(argv=None) -> int:
+  parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+  parser.add_argument("runs", nargs="+")
+  parser.add_argument("--name", required=True, help="data set, e.g. clevr or room")
+  parser.add_argument("--split", default="test")
+  parser.add_argument("--out", required=True)
+  args = parser.parse_args(argv)
+  try:
+    result = headline(args.runs, name=args.name, split=args.split)
+  except ValueError as e:
+    print(f"error: {e}", file=sys.stderr)
+    return 1
+  tmp = args.out + ".partial"
+  with open(tmp, "w") as f:
+    json.dump(result, f, indent=1, sort_keys=True, allow_nan=True)
+    f.write("\n")
+  os.replace(tmp, args.out)
+  s = result["summary"]
+  print(f"{args.name} on {args.split}, {result['num_seeds']} seeds: FG-ARI "
+        f"{s['fg_ari']['mean']:.3f} ± {s['fg_ari']['std']:.3f}, NV-ARI {s['nv_ari']['mean']:.3f} "
+        f"± {s['nv_ari']['std']:.3f}, novel PSNR {s['psnr_novel']['mean']:.2f} ± "
+        f"{s['psnr_novel']['std']:.2f} dB → {args.out}")
+  return 0
+
+
+if __name__ == "__main__":
+  sys.exit(main())
