@@ -2,8 +2,8 @@
 
 One *run* = a base config (`configs/<file>.py:<variant>`), a dict of dotted overrides, a seed and a
 training budget (steps). `execute(run, root=...)`:
-  1. builds the config: the variant, then the budget (`budget_config`: train.num_steps and every
-     schedule length scaled to it, a fixed number of validations), then the overrides, then the
+  1. builds the config: the variant, then the budget (`budget_config`: train.num_steps, which
+     the variant's schedules follow, a fixed number of validations), then the overrides, then the
      seed; unknown override keys, a missing config file or an unknown variant fail here, naming
      the problem, before any work;
   2. names the run directory after a hash of the config spec, the overrides that change it, the
@@ -20,10 +20,12 @@ A run whose result JSON exists is skipped; a run with a finished training but no
 evaluated. So re-running a study script resumes where it stopped.
 
 Why the schedules follow the budget: configs/*.py:quick anneal masking and slot noise over 3000 of
-6500 steps. Cut to 1000 steps without scaling, a run would stop with most of its rays still
+6500 steps. Cut to 1000 steps with fixed schedules, a run would stop with most of its rays still
 masked and the locality constraint on, and the "without random masking" ablation would compare a
-finished method against an unfinished one. Scaling keeps every run a complete, compressed version
-of its method (pass scale_schedules=False to turn this off).
+finished method against an unfinished one. The variants state each schedule as a share of
+train.num_steps (slotlifter_jax/defaults.py), so a run of any budget is a complete, compressed
+version of its method (pass scale_schedules=False to hold them at the variant's own budget).
+A config without such shares (the paper's, `smoke`) keeps its schedules as written.
 
 Recorded per run (the CSV's columns, METRIC_KEYS and below):
   train_s            wall-clock seconds of training, summed over resumed segments; includes the
@@ -42,6 +44,7 @@ Nothing here imports JAX at module level, so a script can re-execute itself with
 
 from __future__ import annotations
 
+import copy
 import csv
 import dataclasses
 import functools
@@ -149,28 +152,22 @@ def apply_overrides(config, overrides: Mapping[str, Any]):
   return config
 
 
-def _scaled(steps: int, factor: float) -> int:
-  """A schedule length scaled to the budget; 0 stays 0 ("never"), anything else stays ≥ 1."""
-  return 0 if steps <= 0 else max(1, int(round(steps * factor)))
-
-
 def budget_config(config, num_steps: int, *, scale_schedules: bool = True,
                   num_validations: int = 2):
-  """A copy of `config` that trains `num_steps` steps (module docstring: why schedules scale).
+  """A resolved copy of `config` that trains `num_steps` steps (module docstring: why schedules
+  follow the budget).
 
-  Validates `num_validations` times (the last at the final step, which gives the collapse flag),
-  and checkpoints at least as often.
+  The variants state their schedules as shares of train.num_steps (slotlifter_jax/defaults.py,
+  `_share`), so setting the budget moves them; scale_schedules=False resolves them at the
+  config's own budget first. Validates `num_validations` times (the last at the final step, which
+  gives the collapse flag), and checkpoints at least as often.
   """
   if num_steps < 1:
     raise StudyError(f"the budget must be at least one step, got {num_steps}")
+  config = copy.deepcopy(config) if scale_schedules else config.copy_and_resolve_references()
+  config.train.num_steps = int(num_steps)
   config = config.copy_and_resolve_references()
   t = config.train
-  if scale_schedules:
-    factor = num_steps / int(t.num_steps)
-    for field in ("warmup_steps", "decay_steps", "mask_anneal_steps", "noise_anneal_steps",
-                  "locality_steps", "mask_min_steps", "mask_min_release_steps"):
-      t[field] = _scaled(int(t[field]), factor)
-  t.num_steps = int(num_steps)
   t.eval_every = max(1, num_steps // max(1, num_validations))
   t.checkpoint_every = max(1, min(int(t.checkpoint_every), t.eval_every))
   # One run is one attempt of one seed: a study measures how often a recipe fails (stability.py's

@@ -263,6 +263,19 @@ def apply_variant(c: ml_collections.ConfigDict, variant: str) -> ml_collections.
   return c
 
 
+def _share(steps, num: int, den: int, multiple_of=1):
+  """round(steps · num / den) steps (halves up), rounded to a multiple of `multiple_of`, as a
+  reference that follows `steps` (the FieldReference of train.num_steps) and `multiple_of` (an int
+  or a FieldReference, e.g. of train.eval_every).
+
+  A variant's schedule lengths thus stay the same shares of its budget however the command line
+  sets train.num_steps, and a field the command line sets itself replaces its reference (a
+  resolved copy, e.g. DIR/config.json, holds plain numbers). Integer arithmetic, so the variant's
+  own budget gives exactly its step counts.
+  """
+  return (steps * (2 * num) + den * multiple_of) // (2 * den * multiple_of) * multiple_of
+
+
 def quick(c):
   """A CPU-sized run of the same method: 64×64, a narrower ResNet-18-style encoder, fewer rays and
   samples, and every schedule compressed to 6500 steps; s_σ starts at −3 and base_lr is the
@@ -295,11 +308,14 @@ def quick(c):
   c.train.grad_accum_chunks = 1
   c.model.density_log_init = -3.0
   c.train.base_lr = 5e-5
-  c.train.warmup_steps = 200
-  c.train.decay_steps = 4000
-  c.train.mask_anneal_steps = 3000
-  c.train.noise_anneal_steps = 3000
-  c.train.locality_steps = 4000
+  # Every schedule a fixed share of the budget (`_share`): 200, 4000, 3000, 3000 and 4000 of the
+  # 6500 steps, and the same shares of any --config.train.num_steps.
+  n = c.train.get_ref("num_steps")
+  c.train.warmup_steps = _share(n, 2, 65)
+  c.train.decay_steps = _share(n, 8, 13)
+  c.train.mask_anneal_steps = _share(n, 6, 13)
+  c.train.noise_anneal_steps = _share(n, 6, 13)
+  c.train.locality_steps = _share(n, 8, 13)
   c.train.eval_every = 1000
   c.train.checkpoint_every = 250
   c.train.prng_impl = "unsafe_rbg"
@@ -376,22 +392,28 @@ def fast(c):
   c.train.steps_per_dispatch = 1
   c.data.frame = "source_azimuth"
   c.data.ray_sampling = "contrast"
+  # Every schedule a fixed share of the budget (`_share`), so --config.train.num_steps=N moves
+  # them all and a field set explicitly keeps its value. At 50 000 steps: warm-up 500, a
+  # half-life of 200 000 (the rate held near its base to the end), masking, slot noise and
+  # locality over 20 000, the masking floor to 40 000 and released over the last 10 000, the
+  # average from the release's start, and the restart check at 14 000 (on eval_every's grid).
+  n, every = c.train.get_ref("num_steps"), c.train.get_ref("eval_every")
   c.train.num_steps = 50_000
-  c.train.warmup_steps = 500
-  c.train.decay_steps = 200_000
-  c.train.mask_anneal_steps = 20_000
-  c.train.noise_anneal_steps = 20_000
-  c.train.locality_steps = 20_000
+  c.train.warmup_steps = _share(n, 1, 100)
+  c.train.decay_steps = n * 4
+  c.train.mask_anneal_steps = _share(n, 2, 5)
+  c.train.noise_anneal_steps = _share(n, 2, 5)
+  c.train.locality_steps = _share(n, 2, 5)
   c.train.mask_min = 0.5
-  c.train.mask_min_steps = 40_000
-  c.train.mask_min_release_steps = 10_000
+  c.train.mask_min_steps = _share(n, 4, 5)
+  c.train.mask_min_release_steps = _share(n, 1, 5)
   c.train.select_by = "min_fg_nv"
   c.train.ema_decay = 0.999
-  c.train.ema_start_step = 40_000  # the start of the masking floor's release
+  c.train.ema_start_step = _share(n, 4, 5)
   c.train.base_lr = 1e-4
   c.train.slot_attention_lr_scale = 2.0
   c.train.restarts = 2
-  c.train.restart_check_step = 14_000
+  c.train.restart_check_step = _share(n, 7, 25, multiple_of=every)
   c.train.restart_min_score = 0.55
   c.train.restart_min_active_slots = 3.0
   c.train.log_every = 50

@@ -72,3 +72,64 @@ def test_fast_keeps_half_the_rays_masked_until_its_gradual_release():
   assert t.mask_min_steps + t.mask_min_release_steps <= t.num_steps
   assert t.select_by == "min_fg_nv"
   assert (fast.data.frame, fast.data.ray_sampling) == ("source_azimuth", "contrast")
+
+
+# The fast variant's schedule fields at its own budget, as they were written before they followed it.
+FAST_SCHEDULE = {"num_steps": 50_000, "warmup_steps": 500, "decay_steps": 200_000,
+                 "mask_anneal_steps": 20_000, "noise_anneal_steps": 20_000,
+                 "locality_steps": 20_000, "mask_min_steps": 40_000,
+                 "mask_min_release_steps": 10_000, "ema_start_step": 40_000,
+                 "restart_check_step": 14_000}
+QUICK_SCHEDULE = {"num_steps": 6500, "warmup_steps": 200, "decay_steps": 4000,
+                  "mask_anneal_steps": 3000, "noise_anneal_steps": 3000, "locality_steps": 4000}
+
+
+def test_schedules_at_the_variants_own_budgets_are_unchanged():
+  for variant, schedule in (("fast", FAST_SCHEDULE), ("quick", QUICK_SCHEDULE)):
+    train = clevr(variant).train
+    assert {k: train[k] for k in schedule} == schedule, variant
+    resolved = clevr(variant).copy_and_resolve_references().train
+    assert {k: resolved[k] for k in schedule} == schedule, variant
+
+
+def test_halving_the_budget_halves_every_schedule_unless_set_explicitly():
+  for variant, schedule in (("fast", FAST_SCHEDULE), ("quick", QUICK_SCHEDULE)):
+    config = clevr(variant)
+    config.train.num_steps = schedule["num_steps"] // 2
+    halved = {k: config.train[k] for k in schedule}
+    expected = {k: v // 2 for k, v in schedule.items()}
+    if "restart_check_step" in schedule:
+      # 7000 lies between validations (every 2000 steps): the nearest on that grid, halves up.
+      assert config.train.eval_every == 2000
+      expected["restart_check_step"] = 8000
+    assert halved == expected, variant
+  # A field set explicitly wins over its share of the budget, in either order.
+  config = clevr("fast")
+  config.train.mask_min_steps = 30_000
+  config.train.num_steps = 60_000
+  assert (config.train.mask_min_steps, config.train.ema_start_step) == (30_000, 48_000)
+  # The restart check stays on the validation grid when that moves.
+  config.train.eval_every = 5000
+  assert config.train.restart_check_step == 15_000
+
+
+def test_command_line_overrides_move_the_schedules_and_config_json_holds_numbers(tmp_path):
+  import json
+  import subprocess
+  import sys
+  script = (
+      "import sys\n"
+      "from absl import flags\n"
+      "from ml_collections import config_flags\n"
+      "config_flags.DEFINE_config_file('config')\n"
+      "flags.FLAGS(sys.argv)\n"
+      "print(flags.FLAGS.config.to_json_best_effort())\n")
+  out = subprocess.run(
+      [sys.executable, "-c", script, f"--config={REPO}/configs/clevr.py:fast",
+       "--config.train.num_steps=25000", "--config.train.locality_steps=30000"],
+      capture_output=True, text=True, check=True).stdout
+  train = json.loads(out)["train"]
+  assert (train["num_steps"], train["mask_anneal_steps"], train["mask_min_steps"],
+          train["mask_min_release_steps"], train["ema_start_step"],
+          train["restart_check_step"]) == (25_000, 10_000, 20_000, 5000, 20_000, 8000)
+  assert train["locality_steps"] == 30_000  # set explicitly
