@@ -160,6 +160,7 @@ def test_edit_flags_are_checked_and_named():
     edit.parse_scenes("0,x")
 
 
+@pytest.mark.slow  # generates the smoke data set: 10-15 s, mostly compiling the ray caster
 def test_world_translations_turn_with_the_source_azimuth_frame():
   """With data.frame = "source_azimuth" the turn `edit` finds puts the world's source camera at
   azimuth 0, where the model-frame scene has it (docs/method.md §3.6)."""

@@ -2,7 +2,8 @@
 independent references: the per-slot rendering of the `--mode=render` panels, the plain render,
 the plain model seen from a moved camera, a NumPy volume renderer of a constructed field, and the
 camera-relative coordinates of a scene in two frames. Every model test runs for both
-`model.density_mode`s."""
+`model.density_mode`s; they compile a tiny model (about 30 s in all), so they are marked slow,
+as tests/conftest.py's SLOW_FILES rule has it for files that compile models."""
 
 import functools
 
@@ -51,6 +52,7 @@ def _plain(mode, origins=None):
                                                    params, origins)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_keeping_one_slot_is_the_per_slot_rendering(mode):
   model = _setup(mode)[0]
@@ -66,6 +68,7 @@ def test_keeping_one_slot_is_the_per_slot_rendering(mode):
       np.testing.assert_allclose(r.opacity, alone.opacity[..., k], rtol=1e-6, atol=1e-7)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_removing_a_slot_takes_away_its_density_and_mass(mode):
   model = _setup(mode)[0]
@@ -82,6 +85,7 @@ def test_removing_a_slot_takes_away_its_density_and_mass(mode):
   np.testing.assert_array_equal(np.asarray(r.segmentation)[..., k], 0.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_moving_by_zero_is_the_plain_render(mode):
   out = _plain(mode)
@@ -97,6 +101,7 @@ def _turn_z(angle):
   return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_a_moved_slot_alone_is_the_slot_seen_from_the_inversely_moved_camera(mode):
   """Slot k moved by T and kept alone renders what slot k alone renders along the rays T⁻¹ of the
@@ -122,6 +127,7 @@ def test_a_moved_slot_alone_is_the_slot_seen_from_the_inversely_moved_camera(mod
   assert np.abs(np.asarray(still.opacity) - np.asarray(moved.opacity)).max() > 1e-3
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", MODES)
 def test_swapping_slots_with_the_same_scene_or_all_slots_with_another(mode):
   model, inputs, params, sources, encoded = _setup(mode)
