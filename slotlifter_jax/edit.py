@@ -5,7 +5,8 @@ Two uses, both with the checkpoint `--mode=eval` takes (best if the run has one,
 
 - Scores, on a split of the embedded set: every object of the first `--max_scenes` scenes
   removed and moved, against the generator's ground truth of the same edit, into
-  DIR/edit/<split>/edit_metrics.json and a few pictures (slotlifter_jax/edit_eval.py).
+  DIR/edit/<split>/edit_metrics.json and a few pictures (slotlifter_jax/edit_eval.py, which
+  also holds the command, `edit_eval.run`).
 - One edit of chosen scenes of any set, with or without ground truth (`render_edit`):
   `--scenes=0,3 --remove_slot=k`, or `--move_slot=k --by=dx,dy,dz` (world units and axes of the
   stored cameras, turned into the model's frame by rendering.edits.frame_map). Writes
@@ -244,17 +245,3 @@ def render_edit(config: ml_collections.ConfigDict, workdir: str, request: Reques
     written.append((stem + ".png", stem + "_orbit.gif"))
   return written
 
-
-def run(config: ml_collections.ConfigDict, workdir: str, *, split: str, scenes: str,
-        remove_slot: Optional[int], move_slot: Optional[int], by: str, checkpoint: str,
-        params: str, max_scenes: Optional[int], overwrite: bool, orbit_frames: int) -> str:
-  """The `--mode=edit` command (module docstring): what it prints."""
-  request = parse_request(num_slots=int(config.model.num_slots), remove_slot=remove_slot,
-                          move_slot=move_slot, by=by)
-  if request is None:
-    from slotlifter_jax import edit_eval  # it builds on this module
-    return edit_eval.format_summary(edit_eval.score_split(config, workdir, split=split, checkpoint=checkpoint,
-                                      params=params, max_scenes=max_scenes, overwrite=overwrite))
-  written = render_edit(config, workdir, request, split=split, scene_indices=parse_scenes(scenes),
-                        checkpoint=checkpoint, params=params, num_orbit_frames=orbit_frames)
-  return "\n".join(f"{p}\n  {g}" for p, g in written)

@@ -21,7 +21,8 @@ and compared on the novel views with the generator's ground truth of the same ed
 and DIR/edit/<split>/pictures/scene_XXXX_<kind>_oL.png for the first edits of each kind: per
 novel view, source | truth before | truth after | render before | render after | render change |
 truth change (titled source, GT, GT edit, render, edited, change, GT chg). An existing
-edit_metrics.json is kept unless `overwrite`.
+edit_metrics.json is kept unless `overwrite`. `run` is the whole `--mode=edit` command: these
+scores, or one asked-for edit of chosen scenes (edit.render_edit).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ from slotlifter_jax import vis
 from slotlifter_jax.data import registry
 from slotlifter_jax.data import scene_edits
 from slotlifter_jax.data.types import Scene
+from slotlifter_jax import edit
 from slotlifter_jax.edit import EditFlagError, EditRenderer, change_picture, panel
 from slotlifter_jax.rendering import edits
 from slotlifter_jax.rendering import pictures
@@ -261,3 +263,19 @@ def format_summary(report: dict) -> str:
     lines.append(line)
   lines.append(f"wrote {report['metrics_path']}")
   return "\n".join(lines)
+
+
+def run(config: ml_collections.ConfigDict, workdir: str, *, split: str, scenes: str,
+        remove_slot: Optional[int], move_slot: Optional[int], by: str, checkpoint: str,
+        params: str, max_scenes: Optional[int], overwrite: bool, orbit_frames: int) -> str:
+  """The `--mode=edit` command: the scores of the split (this module), or with --remove_slot or
+  --move_slot one edit of the --scenes (edit.render_edit); returns what it prints."""
+  request = edit.parse_request(num_slots=int(config.model.num_slots), remove_slot=remove_slot,
+                               move_slot=move_slot, by=by)
+  if request is None:
+    return format_summary(score_split(config, workdir, split=split, checkpoint=checkpoint,
+                                      params=params, max_scenes=max_scenes, overwrite=overwrite))
+  written = edit.render_edit(config, workdir, request, split=split,
+                             scene_indices=edit.parse_scenes(scenes), checkpoint=checkpoint,
+                             params=params, num_orbit_frames=orbit_frames)
+  return "\n".join(f"{p}\n  {g}" for p, g in written)

@@ -20,7 +20,7 @@ from ml_collections import config_flags
 from slotlifter_jax import config_checks
 from slotlifter_jax import runtime
 
-config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/clevr.py:quick.",
+config_flags.DEFINE_config_file("config", None, "Config file, e.g. configs/clevr.py:paper_cpu.",
                                 lock_config=True)
 flags.DEFINE_string("workdir", None, "Run directory: checkpoints, metrics, pictures.")
 flags.DEFINE_enum("mode", "train", ["train", "eval", "render", "edit"], "What to do.")
@@ -123,13 +123,13 @@ def main(argv):
           nv_ari_last_view=FLAGS.nv_ari_last_view, params=FLAGS.params)
       say(evaluate.format_table(result))
     elif FLAGS.mode == "edit":
-      from slotlifter_jax import edit
+      from slotlifter_jax import edit, edit_eval
       try:
-        say(edit.run(FLAGS.config, FLAGS.workdir, split=FLAGS.split, scenes=FLAGS.scenes,
-                     remove_slot=FLAGS.remove_slot, move_slot=FLAGS.move_slot, by=FLAGS.by,
-                     checkpoint=FLAGS.checkpoint, params=FLAGS.params,
-                     max_scenes=FLAGS.max_scenes, overwrite=FLAGS.overwrite,
-                     orbit_frames=FLAGS.orbit_frames))
+        say(edit_eval.run(FLAGS.config, FLAGS.workdir, split=FLAGS.split, scenes=FLAGS.scenes,
+                          remove_slot=FLAGS.remove_slot, move_slot=FLAGS.move_slot, by=FLAGS.by,
+                          checkpoint=FLAGS.checkpoint, params=FLAGS.params,
+                          max_scenes=FLAGS.max_scenes, overwrite=FLAGS.overwrite,
+                          orbit_frames=FLAGS.orbit_frames))
       except edit.EditFlagError as e:
         sys.exit(f"error: {e}")  # the message starts with the flag
     else:

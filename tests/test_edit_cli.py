@@ -122,9 +122,9 @@ def test_scoring_path_and_one_edit_pictures(run_dir, tmp_path):
   metrics_path = os.path.join(run_dir, "edit", "test", "edit_metrics.json")
   with open(metrics_path, "rb") as f:
     kept = f.read()
-  lines = edit.run(config, run_dir, split="test", scenes="1", remove_slot=None, move_slot=2,
-                   by="1.5,0,0", checkpoint="", params="average", max_scenes=None,
-                   overwrite=False, orbit_frames=3)
+  lines = edit_eval.run(config, run_dir, split="test", scenes="1", remove_slot=None,
+                        move_slot=2, by="1.5,0,0", checkpoint="", params="average",
+                        max_scenes=None, overwrite=False, orbit_frames=3)
   png = os.path.join(run_dir, "edit", "test", "scene_0001_move_s2.png")
   assert png in lines and os.path.getsize(png) > 0
   assert os.path.getsize(png.replace(".png", "_orbit.gif")) > 0
