@@ -4,11 +4,11 @@ Default = the paper's settings (docs/method.md §1–2): 128×128, 1 source view
 samples, 4 scenes × 1024 rays, 250k steps, locality for 50k steps.
 
 Run:
-  python -m slotlifter_jax.main --config=configs/clevr.py:fast --workdir=runs/clevr_fast
+  python -m slotlifter_jax.main --config=configs/clevr.py:scene --workdir=runs/clevr_scene
   python -m slotlifter_jax.main --config=configs/clevr.py --config.data.root=/path/to/clevr --workdir=...
-Variants: `quick` (CPU-sized run of the same method), `fast` (the scene-sized CPU model: many
-cheap steps), `easy` (1–3 larger objects; compose as `fast+easy`), `smoke` (about a minute, for
-tests).
+Variants: `scene` (the scene-sized headline model: many cheap steps; formerly `fast`),
+`paper_cpu` (the paper's model shrunk to a CPU, which does not split scenes; formerly `quick`),
+`easy` (1–3 larger objects; compose as `scene+easy`), `smoke` (about a minute, for tests).
 """
 
 from slotlifter_jax import defaults

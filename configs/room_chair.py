@@ -2,7 +2,7 @@
 
 Paper settings (docs/method.md §1–2): 128×128, 1 source view, K = 5, D = 64, 96 samples, locality
 50k steps.
-Run: python -m slotlifter_jax.main --config=configs/room_chair.py[:quick|:smoke] --workdir=DIR
+Run: python -m slotlifter_jax.main --config=configs/room_chair.py[:scene|:paper_cpu|:smoke] --workdir=DIR
 Real data: --config.data.root=/path/to/uorf_data (holding room_chair_{train,test}).
 """
 

@@ -1,8 +1,8 @@
 """Paired train-step timing of two checkouts: which of two versions of the code steps faster.
 
-  python experiments/ab_step.py --base=HEAD~1 --configs=fast,quick --out=DIR/ab.json
+  python experiments/ab_step.py --base=HEAD~1 --configs=scene,paper_cpu --out=DIR/ab.json
   python experiments/ab_step.py --base=/path/to/other/checkout --head=. --rounds=12 --steps=10 …
-  python experiments/ab_step.py --base=. --configs=fast:fast_fold,quick:quick_fold --out=…
+  python experiments/ab_step.py --base=. --configs=scene:scene_fold,paper_cpu:paper_cpu_fold --out=…
 
 On a shared or throttled host one step's time drifts by ±10 % between calls of
 `experiments/bench.py` minutes apart (experiments/journal/2026-12.md, "Folded products"), more
@@ -38,7 +38,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 flags.DEFINE_string("base", "HEAD", "Checkout directory or git revision of the reference side.")
 flags.DEFINE_string("head", REPO, "Checkout directory or git revision of the side measured against it.")
-flags.DEFINE_list("configs", ["fast"], "Configurations of experiments/bench_common.py to time: "
+flags.DEFINE_list("configs", ["scene"], "Configurations of experiments/bench_common.py to time: "
                   "NAME on both sides, or BASE:HEAD.")
 flags.DEFINE_integer("rounds", 8, "Turns per side; the order of the two sides alternates.")
 flags.DEFINE_integer("steps", 10, "Timed steps per turn (after two warm-up steps per worker).")

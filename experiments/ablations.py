@@ -1,35 +1,33 @@
-"""Ablations of the paper's Table 5 (issue #6, docs/method.md §5) on the embedded room set.
+"""Ablations of the paper's Table 5 (docs/method.md §5) on the headline model.
 
   python experiments/ablations.py --dry_run     # the plan and its estimated time, nothing run
   python experiments/ablations.py               # train + evaluate, then write the table
   python experiments/ablations.py --table_only  # rewrite the table from ablations.csv
 
-Base: configs/room_chair.py:quick (the embedded procedural `room` family: chairs with thin legs on
-a textured floor with walls, 64², K = 5; generated once into $SLOTLIFTER_DATA_CACHE, about a
-minute).
-Variants (VARIANTS below), each over --seeds seeds (default 3):
+Base: configs/clevr.py:scene, the README's model, at its own budget (50 000 steps) on the embedded
+clevr set. Variants (VARIANTS below), each over --seeds seeds (default 3):
   full             the method
   no_lifting       model.feature_lifting = False: point feature E_p only, views reach points only
                    through the slots
   no_masking       train.mask_max = mask_min = 0: the keep ratio is 1 at every step (no random masking)
   no_slot_density  model.density_mode = "mlp": σ from a small head on the allocation transformer's
                    output instead of the slot-based formula (decoder.mlp_density)
-Every run trains --num_steps steps with the schedules scaled to the budget (study_common.py) and is
-evaluated (last checkpoint) on the first --eval_scenes test scenes. Writes
-experiments/results/ablations.csv (one row per run) and ablations.md: mean ± sample std over seeds
-of PSNR, ARI, FG-ARI, NV-ARI, NV-FG-ARI, and the collapse rate (runs whose last validation flags
-collapse, slotlifter_jax/collapse.py). Collapsed runs count in the means, as seeds do in the paper.
+Every run trains --num_steps steps (default: the config's own; a variant's schedules follow the
+budget, study_common.py) and is evaluated (last checkpoint) on the first --eval_scenes test scenes.
+Writes experiments/results/ablations.csv (one row per run) and ablations.md: mean ± sample std
+over seeds of PSNR, ARI, FG-ARI, NV-ARI, NV-FG-ARI, and the collapse rate (runs whose last
+validation flags collapse, slotlifter_jax/collapse.py). Collapsed runs count in the means, as
+seeds do in the paper.
 
 The paper's figures (Room-Diverse, 128², 250k steps): without feature lifting PSNR 28.20 / NV-ARI
 71.4; without random masking FG-ARI 43.6 and collapsing runs; without slot density FG-ARI 77.3.
-A 600-step CPU budget is a different regime: read the table as the same ablation at a small
-budget, not as a reproduction (at 600 steps no variant splits objects:
-experiments/journal/2026-11.md, "Ablations").
-
-Time: 63 min measured on the 2-core CPU for the defaults (4 variants × 3 seeds × 600 steps, 20
-scenes; 20:11–21:14 on 2026-11-22); --dry_run prints an estimate from the cost model in
-study_common.py. Runs live in --root (default runs/study/, shared with stability.py, which
-reuses the `full` runs); a finished run is skipped, so running the script again resumes.
+Expected: `experiments/results/ablations_fast50k.md` (one seed each; without masking nothing
+splits, without slot density the rendering falls into 2 slots, without lifting PSNR falls).
+Time: 45–58 min per run alone on the 2-core reference host (journal: "Ablations"), so about 10 h
+for the defaults; the earlier 600-step study on `configs/room_chair.py:paper_cpu` is
+`--config=configs/room_chair.py:paper_cpu --num_steps=600 --eval_scenes=20`. Runs live in --root
+(default runs/study/, shared with stability.py, which reuses the `full` runs); a finished run is
+skipped, so running the script again resumes.
 """
 
 from __future__ import annotations
@@ -45,10 +43,9 @@ sys.path.insert(0, REPO)
 from experiments import study_common as sc  # noqa: E402  (no JAX import)
 from experiments import study_tables as st  # noqa: E402
 
-BASE = "configs/room_chair.py:quick"
-# Per run: the 12 runs took 63 min on the 2-core CPU (experiments/journal/2026-11.md, "Ablations").
-NUM_STEPS = 600
-EVAL_SCENES = 20
+BASE = "configs/clevr.py:scene"
+NUM_STEPS = None  # the config's own train.num_steps
+EVAL_SCENES = 100
 VARIANTS = {
     "full": {},
     "no_lifting": {"model.feature_lifting": False},
@@ -61,9 +58,15 @@ COLUMNS = (("psnr_novel", "PSNR (dB)", 1.0, 2), ("ari", "ARI", 100.0, 1),
            ("nv_fg_ari", "NV-FG-ARI", 100.0, 1))
 
 
-def plan(*, config: str = BASE, num_steps: int = NUM_STEPS, seeds=(0, 1, 2),
+def budget(config: str, num_steps: int | None) -> int:
+  """`num_steps`, or with None the config's own train.num_steps."""
+  return int(num_steps or sc.load_config(config).train.num_steps)
+
+
+def plan(*, config: str = BASE, num_steps: int | None = NUM_STEPS, seeds=(0, 1, 2),
          variants: dict = VARIANTS) -> list[sc.Run]:
   """Seed-major order, so an interrupted study has every variant at the first seeds."""
+  num_steps = budget(config, num_steps)
   return [sc.Run(name=name, config=config, overrides=overrides, seed=seed, num_steps=num_steps)
           for seed in seeds for name, overrides in variants.items()]
 
@@ -86,7 +89,8 @@ def parse_args(argv=None):
   p.add_argument("--root", default=sc.DEFAULT_ROOT, help="where the run directories go")
   p.add_argument("--results_dir", default=sc.RESULTS_DIR, help="where ablations.csv/.md go")
   p.add_argument("--config", default=BASE)
-  p.add_argument("--num_steps", type=int, default=NUM_STEPS, help="training budget per run")
+  p.add_argument("--num_steps", type=int, default=NUM_STEPS,
+                 help="training budget per run (default: the config's own train.num_steps)")
   p.add_argument("--eval_scenes", type=int, default=EVAL_SCENES, help="test scenes per run")
   p.add_argument("--eval_split", default="test")
   p.add_argument("--seeds", type=int, default=3, help="seeds 0..N-1 per variant")

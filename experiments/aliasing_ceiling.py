@@ -1,6 +1,6 @@
 """What a perfect one-ray-per-pixel renderer scores against the embedded set's anti-aliased images.
 
-  python experiments/aliasing_ceiling.py [--config=configs/clevr.py:fast] [--scenes=100]
+  python experiments/aliasing_ceiling.py [--config=configs/clevr.py:scene] [--scenes=100]
       [--out=experiments/results/aliasing_ceiling_clevr64.json]
 
 The embedded generator colours each pixel with the mean of 2×2 rays inside it (anti-aliasing), as
@@ -55,7 +55,7 @@ def _as_rendering(rgb: np.ndarray, labels: np.ndarray, num_slots: int) -> views_
 
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--config", default="configs/clevr.py:fast")
+  parser.add_argument("--config", default="configs/clevr.py:scene")
   parser.add_argument("--scenes", type=int, default=100)
   parser.add_argument("--supersample", default="1,2,4",
                       help="rays per pixel side of the renderings to score (comma-separated)")

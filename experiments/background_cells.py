@@ -1,6 +1,6 @@
 """How much of the source view `model.locality_attention` hands to slot attention's first slot.
 
-  python experiments/background_cells.py [--config=configs/clevr.py:fast] [--scenes=100]
+  python experiments/background_cells.py [--config=configs/clevr.py:scene] [--scenes=100]
 
 For each validation scene, the source-view feature cells whose ray never enters the locality box
 over its sampled interval (`SlotLifter.background_cells`, docs/method.md §1.4). Prints their share
@@ -42,7 +42,7 @@ def cell_pixels(size: int, cells: int) -> np.ndarray:
 
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--config", default="configs/clevr.py:fast")
+  parser.add_argument("--config", default="configs/clevr.py:scene")
   parser.add_argument("--scenes", type=int, default=100)
   args = parser.parse_args()
   config = embedded.resolve_data(study_common.load_config(args.config))

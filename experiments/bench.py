@@ -1,7 +1,7 @@
 """Train-step and rendering benchmark: step time, rays/s, FLOPs, model FLOP utilisation, memory.
 
   python experiments/bench.py                         # every configuration below, ~15 min on 2 cores
-  python experiments/bench.py --configs=B,quick --steps=10
+  python experiments/bench.py --configs=B,paper_cpu --steps=10
   python experiments/bench.py --configs=B,A --allocators=system,mimalloc,tcmalloc
   python experiments/bench.py --configs=A,B --dtypes=float32,bfloat16
 
@@ -36,13 +36,13 @@ Configurations (issue #7; every other setting is the paper's, configs/clevr.py):
               2 scene chunks × 2 ray chunks
   paper_batch the paper's 4 scenes × 1024 rays (A's settings), 2 accumulation chunks
   B           64×64, 32 samples, 2 scenes × 256 rays
-  quick       configs/clevr.py:quick (what the README's first command trains)
-  fast        configs/clevr.py:fast, the scene-sized model (host batches, one step per dispatch)
-  fast_device fast with its batches drawn inside the jitted step (data.sampler=device)
-  fast_scan10 fast_device with 10 steps per dispatch (lax.scan over steps; a call is a block,
+  paper_cpu   configs/clevr.py:paper_cpu, the paper's model shrunk to a CPU
+  scene       configs/clevr.py:scene, the scene-sized model (host batches, one step per dispatch)
+  scene_device scene with its batches drawn inside the jitted step (data.sampler=device)
+  scene_scan10 scene_device with 10 steps per dispatch (lax.scan over steps; a call is a block,
               s/step = block time / 10)
-  fast_stride2 fast with the encoder's half-size feature map (model.encoder_output_stride = 2)
-  fast_samples8 fast with 8 samples per ray (16 in fast; the pareto grid's samples8)
+  scene_stride2 scene with the encoder's half-size feature map (model.encoder_output_stride = 2)
+  scene_samples8 scene with 8 samples per ray (16 in scene; the pareto grid's samples8)
 The batches come from scenes of the embedded generator (two per batch, made in memory), so rays
 and source views look like training data; speed does not depend on the pixel values.
 """
@@ -72,7 +72,7 @@ from experiments.bench_common import CONFIGS  # noqa: E402
 
 RENDER_SIZE = 128
 
-flags.DEFINE_list("configs", ["B", "quick", "A", "A_lowmem", "paper_batch"],
+flags.DEFINE_list("configs", ["B", "paper_cpu", "A", "A_lowmem", "paper_batch"],
                   f"Which of {sorted(CONFIGS)} to measure.")
 flags.DEFINE_integer("steps", 10, "Timed train steps per configuration (after 2 warm-up steps).")
 flags.DEFINE_integer("render_repeats", 3, "Timed full-view renders per configuration.")

@@ -11,7 +11,7 @@ from slotlifter_jax.provenance import CPU_EXTENSIONS, cpu_info  # noqa: F401
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
-_FAST_DEVICE = {"data.sampler": "device", "data.ray_sampling": "uniform"}
+_SCENE_DEVICE = {"data.sampler": "device", "data.ray_sampling": "uniform"}
 CONFIGS = {
     "A": dict(variant="", overrides={"data.image_size": 128, "render.num_samples": 96,
                                      "train.batch_scenes": 2, "train.rays_per_scene": 1024,
@@ -26,22 +26,22 @@ CONFIGS = {
     "B": dict(variant="", overrides={"data.image_size": 64, "render.num_samples": 32,
                                      "train.batch_scenes": 2, "train.rays_per_scene": 256,
                                      "train.grad_accum_chunks": 1}),
-    "quick": dict(variant="quick", overrides={}),
+    "paper_cpu": dict(variant="paper_cpu", overrides={}),
     # The scene-sized model (host batches, one step per dispatch).
-    "fast": dict(variant="fast", overrides={}),
-    # fast with its batch drawn inside the jitted step (data.sampler=device).
+    "scene": dict(variant="scene", overrides={}),
+    # scene with its batch drawn inside the jitted step (data.sampler=device).
     # (The device sampler draws uniform rays only.)
-    "fast_device": dict(variant="fast", overrides=_FAST_DEVICE),
-    # fast_device with 10 steps per dispatch under lax.scan, timed per step (XLA:CPU compiles a
+    "scene_device": dict(variant="scene", overrides=_SCENE_DEVICE),
+    # scene_device with 10 steps per dispatch under lax.scan, timed per step (XLA:CPU compiles a
     # loop body's conv gradients poorly: slower, not faster).
-    "fast_scan10": dict(variant="fast", overrides={**_FAST_DEVICE, "train.steps_per_dispatch": 10}),
-    # fast with a half-size feature map (model.encoder_output_stride = 2; slotlifter_jax/encoder.py).
-    "fast_stride2": dict(variant="fast", overrides={"model.encoder_output_stride": 2}),
-    # fast with 8 samples per ray instead of 16 (the pareto grid's `samples8`, experiments/pareto.py).
-    "fast_samples8": dict(variant="fast", overrides={"render.num_samples": 8}),
-    # quick and fast with the decoder's products folded (model.fold_products; decoder.py).
-    "quick_fold": dict(variant="quick", overrides={"model.fold_products": True}),
-    "fast_fold": dict(variant="fast", overrides={"model.fold_products": True}),
+    "scene_scan10": dict(variant="scene", overrides={**_SCENE_DEVICE, "train.steps_per_dispatch": 10}),
+    # scene with a half-size feature map (model.encoder_output_stride = 2; slotlifter_jax/encoder.py).
+    "scene_stride2": dict(variant="scene", overrides={"model.encoder_output_stride": 2}),
+    # scene with 8 samples per ray instead of 16 (the pareto grid's `samples8`, experiments/pareto.py).
+    "scene_samples8": dict(variant="scene", overrides={"render.num_samples": 8}),
+    # paper_cpu and scene with the decoder's products folded (model.fold_products; decoder.py).
+    "paper_cpu_fold": dict(variant="paper_cpu", overrides={"model.fold_products": True}),
+    "scene_fold": dict(variant="scene", overrides={"model.fold_products": True}),
 }
 
 

@@ -1,7 +1,7 @@
 """Adaptive full-view rendering (issue #7, slotlifter_jax/rendering/adaptive.py): speed against
 the plain path, and quality at that speed on a trained model.
 
-  python experiments/bench_render.py --workdir=runs/clevr_quick   # ~15 min on 2 cores
+  python experiments/bench_render.py --workdir=runs/clevr_paper_cpu   # ~15 min on 2 cores
   python experiments/bench_render.py --scenes=5 --skip_timing --skip_context
 
 Three parts, each renderer pair in one process so the ratio is trustworthy on a noisy machine
@@ -9,12 +9,12 @@ Three parts, each renderer pair in one process so the ratio is trustworthy on a 
 
 1. Timing, random-init weights (shapes are fixed, so the plain path's time does not depend on
    them): one full view of config A (experiments/bench_common.py: 128×128, 96 samples) and of
-   `configs/clevr.py:quick` (32 samples) at 64×64 and 128×128, plain vs adaptive, median of
+   `configs/clevr.py:paper_cpu` (32 samples) at 64×64 and 128×128, plain vs adaptive, median of
    --repeats renders after one compiling render, alternating the two. The adaptive renderer runs
    with the fallback off here: its fixed-shape passes are what is timed, because a random-init
    model's density is spread along every ray and would send nearly every pixel to the fallback.
    The trained model's fallback share and its cost are measured in part 2.
-2. Quality, the trained quick model (--workdir, default runs/clevr_quick) on --scenes test
+2. Quality, the trained paper_cpu model (--workdir, default runs/clevr_paper_cpu) on --scenes test
    scenes, every view: novel-view PSNR, ARI / FG-ARI (source view) and NV-ARI / NV-FG-ARI of the
    plain path and of each --settings entry (stride:window:eps:fallback), their differences, the
    share of pixels whose argmax slot differs, the overflow and fallback shares, the decoder work
@@ -48,7 +48,7 @@ from slotlifter_jax import runtime  # noqa: E402  (no JAX import)
 from slotlifter_jax import provenance  # noqa: E402  (no JAX import)
 from experiments import bench_common  # noqa: E402
 
-flags.DEFINE_string("workdir", "runs/clevr_quick", "A trained configs/clevr.py:quick run (the README's first command before `fast`).")
+flags.DEFINE_string("workdir", "runs/clevr_paper_cpu", "A trained configs/clevr.py:paper_cpu run.")
 flags.DEFINE_string("checkpoint", "", "Checkpoint of --workdir: '' (best, else latest), best, "
                     "latest or a step.")
 flags.DEFINE_integer("scenes", 20, "Test scenes for the quality part.")
@@ -58,7 +58,7 @@ flags.DEFINE_list("settings", ["3:24:0.01:1", "4:24:0.01:1", "3:16:0.01:1", "4:1
                   "Adaptive settings of the quality part, stride:window:eps:fallback(0/1).")
 flags.DEFINE_list("timing_A", ["3:24:0.01", "4:24:0.01", "4:16:0.01"],
                   "stride:window:eps settings timed on config A.")
-flags.DEFINE_string("timing_quick", "", "stride:window:eps timed on the quick config; empty: "
+flags.DEFINE_string("timing_paper_cpu", "", "stride:window:eps timed on the paper_cpu config; empty: "
                     "the setting picked in the quality part (3:12:0.01 with --skip_quality).")
 flags.DEFINE_float("max_psnr_drop", 0.1, "Quality bound: |novel-view PSNR difference| in dB.")
 flags.DEFINE_float("max_argmax_diff", 0.01, "Quality bound: share of pixels whose argmax slot "
@@ -170,7 +170,7 @@ def quality(settings: list[dict]) -> dict:
   from slotlifter_jax.rendering import adaptive, views as views_lib
   sys.path.insert(0, os.path.join(REPO, "configs"))
   import clevr  # configs/clevr.py
-  config = clevr.get_config("quick")
+  config = clevr.get_config("paper_cpu")
   run = evaluate.load_run(config, FLAGS.workdir, split="test", checkpoint=FLAGS.checkpoint,
                           max_scenes=FLAGS.scenes)
   plain = views_lib.SceneRenderer(run.model, run.config)
@@ -244,7 +244,7 @@ def context(windows: list[int]) -> dict:
   from slotlifter_jax.rendering import adaptive, views as views_lib
   sys.path.insert(0, os.path.join(REPO, "configs"))
   import clevr  # configs/clevr.py
-  run = evaluate.load_run(clevr.get_config("quick"), FLAGS.workdir, split="test",
+  run = evaluate.load_run(clevr.get_config("paper_cpu"), FLAGS.workdir, split="test",
                           checkpoint=FLAGS.checkpoint, max_scenes=FLAGS.context_scenes)
   model, params, eps = run.model, run.params, 0.01
   grid = adaptive.SampleGrid(near=model.near, far=model.far, num_samples=model.num_samples)
@@ -370,15 +370,15 @@ def main(argv):
       result["timing"] = previous["timing"]
   else:
     picked = result.get("quality", {}).get("picked_spec")
-    quick_setting = FLAGS.timing_quick or picked or "3:16:0.01"
+    paper_cpu_setting = FLAGS.timing_paper_cpu or picked or "3:16:0.01"
     rows = time_group("A", 128, [_parse(s) for s in FLAGS.timing_A], FLAGS.repeats)
     for size in (64, 128):
-      rows += time_group("quick", size, [_parse(quick_setting)], FLAGS.repeats)
+      rows += time_group("paper_cpu", size, [_parse(paper_cpu_setting)], FLAGS.repeats)
     result["timing"] = dict(rows=rows, date=stamp(), plain_chunks=FLAGS.plain_chunks)
     print(timing_table(rows), flush=True)
-  # Commit, machine, jax version and wall time; the configs are the benchmark's "A" and "quick".
+  # Commit, machine, jax version and wall time; the configs are the benchmark's "A" and "paper_cpu".
   result[provenance.KEY] = provenance.collect(
-      {name: provenance.config_dict(bench_common.config(name)) for name in ("A", "quick")},
+      {name: provenance.config_dict(bench_common.config(name)) for name in ("A", "paper_cpu")},
       wall_s=time.perf_counter() - t_start)
   tmp = out_path + ".tmp"
   with open(tmp, "w") as f:

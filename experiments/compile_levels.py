@@ -1,7 +1,7 @@
 """What LLVM's optimisation level costs and changes: the init program and the train step.
 
   python experiments/compile_levels.py
-  python experiments/compile_levels.py --configs=clevr:smoke,clevr:fast --levels=3,1
+  python experiments/compile_levels.py --configs=clevr:smoke,clevr:scene --levels=3,1
 
 For each configuration of --configs (`<config file>:<variant>`), compiles the init program of
 `train_step.init_state` (the weights of the model; its forward is dead code, what is left is one
@@ -28,9 +28,9 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 sys.path.insert(0, os.path.join(REPO, "tests"))
 
-flags.DEFINE_list("configs", ["clevr:smoke", "clevr:fast", "clevr:quick", "clevr:", "room_chair:"],
+flags.DEFINE_list("configs", ["clevr:smoke", "clevr:scene", "clevr:paper_cpu", "clevr:", "room_chair:"],
                   "Configurations, <file in configs/>:<variant> (empty variant: the paper's).")
-flags.DEFINE_list("step_configs", ["clevr:smoke", "clevr:fast"],
+flags.DEFINE_list("step_configs", ["clevr:smoke", "clevr:scene"],
                   "The configurations whose train step is also compiled and run (the paper's "
                   "takes minutes per level on a CPU).")
 flags.DEFINE_list("levels", ["3", "1", "0"], "xla_backend_optimization_level values; 3 first.")

@@ -1,6 +1,6 @@
 """Where does a run put its density? `python experiments/diagnose_density.py CONFIG RUN_DIR [SCENE [SPLIT]]`.
 
-Example: python experiments/diagnose_density.py configs/clevr.py:quick runs/clevr_quick
+Example: python experiments/diagnose_density.py configs/clevr.py:paper_cpu runs/clevr_paper_cpu
 Prints, for one validation scene's first novel view rendered from the run's latest checkpoint, the
 mean rendered depth against the near plane (a run stuck in the "fog" solution renders everything
 at the first sample, depth = near), the slot that owns each pixel, and σ, the empty-slot weight W_0

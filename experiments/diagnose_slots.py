@@ -1,6 +1,6 @@
 """Do the slots of a run hold objects before any 3D rendering? Slot attention on the source view.
 
-  python experiments/diagnose_slots.py --workdir=runs/clevr_fast [--split=val --scenes=20
+  python experiments/diagnose_slots.py --workdir=runs/clevr_scene [--split=val --scenes=20
       --checkpoint=best]
 
 The rendered segmentation (evaluate.py's FG-ARI) mixes two stages: slot attention grouping the

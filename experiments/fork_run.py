@@ -2,7 +2,7 @@
 can change one setting from that step on and be compared with the run it forked from.
 
   python experiments/fork_run.py SRC DST --checkpoint=30000
-  python -m slotlifter_jax.main --config=configs/clevr.py:fast --workdir=DST --config.train.base_lr=5e-5
+  python -m slotlifter_jax.main --config=configs/clevr.py:scene --workdir=DST --config.train.base_lr=5e-5
 
 SRC is a training run's --workdir, DST a folder that does not exist yet. --checkpoint picks the
 checkpoint to start from: latest (the default), best, or a step number (among the latest

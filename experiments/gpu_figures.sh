@@ -5,7 +5,7 @@
 #      included), then stopped with SIGINT (it checkpoints; the same command resumes): its steps/s
 #      and its emergence curve (metrics.jsonl, emergence.json). The paper configuration is
 #      validated every 500 steps on 20 scenes, a variant at its own interval;
-#   2. experiments/bench.py on the paper's batch and on `fast` (bench_gpu.json), unless
+#   2. experiments/bench.py on the paper's batch and on `scene` (bench_gpu.json), unless
 #      BENCH_SECONDS is 0.
 # Everything it measures is copied to OUTDIR. Usage, from the repository root:
 #   bash experiments/gpu_figures.sh OUTDIR [TRAIN_SECONDS] [BENCH_SECONDS] [CONFIG]
@@ -38,7 +38,7 @@ done
 grep -E '"val"' "$out/${name}_metrics.jsonl" 2>/dev/null | tail -n 3 | cut -c1-300
 [ "$bench_s" = 0 ] && exit 0
 
-timeout "$bench_s" $py experiments/bench.py --configs=paper_batch,fast --steps=20 --out="$out" \
+timeout "$bench_s" $py experiments/bench.py --configs=paper_batch,scene --steps=20 --out="$out" \
   >"$out/bench.log" 2>&1
 echo "bench: rc $?" | tee -a "$out/gpu.txt"
 tail -n 12 "$out/bench.log"

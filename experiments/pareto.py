@@ -3,12 +3,12 @@
   python experiments/pareto.py --dry_run        # the plan and its estimated time, nothing run
   python experiments/pareto.py                  # train + evaluate every point, then plot
   python experiments/pareto.py --plot_only      # redraw from experiments/results/pareto.csv
-  python experiments/pareto.py --grid=fast --eval_scenes=100   # around `fast`, 50 000 steps
+  python experiments/pareto.py --grid=scene --eval_scenes=100   # around `scene`, 50 000 steps
 
-Base: configs/clevr.py:quick on the embedded clevr set (64², 32 samples, 2 scenes × 256 rays, the
+Base: configs/clevr.py:paper_cpu on the embedded clevr set (64², 32 samples, 2 scenes × 256 rays, the
 narrow ResNet-18-style encoder). Each point changes one axis of the base, plus one cheap corner,
 rather than the full product (POINTS below, 7 runs, one seed):
-  base          the quick config
+  base          the paper_cpu config
   rays512/1024  train.rays_per_scene 512 / 1024 (cost per step ∝ rays)
   samples16     render.num_samples 16 (training and rendering ∝ samples)
   res32         data.image_size 32 (its own 32² set; rendering ∝ pixels; metrics at 32²)
@@ -21,17 +21,17 @@ collapse flag; the figure plots novel-view PSNR and FG-ARI against training time
 time per view, with the Pareto front (lower time, higher metric) as a step line and larger markers.
 Note that PSNR and ARI at 32² are measured at 32², so they are not the same task as at 64².
 
-`--grid=fast` draws the same chart around configs/clevr.py:fast at its own budget (50 000 steps,
+`--grid=scene` draws the same chart around configs/clevr.py:scene at its own budget (50 000 steps,
 the schedules unscaled), where the model decomposes, so the FG-ARI axis measures decomposition
-rather than noise (FAST_POINTS: samples per ray 8 / 32 against 16, rays per scene 64 / 256
-against 128, slot width 64, 4 allocation blocks, colour MLP width 64). Its files are
-pareto_fast.csv/.md/.png. Its `base` run is the same run directory as
-`ablations.py --config=configs/clevr.py:fast`'s `full` (study_common.run_id), so the two studies
-share it. About 80 min per point alone on the 2026-11-27 host (seed 3 of `fast`: 79.5 min).
+rather than noise (SCENE_POINTS: samples per ray 8 / 32 against 16, rays per scene 64 / 256
+against 128, slot width 64, 4 allocation blocks, colour MLP width 64). Its files keep the
+variant's former name, pareto_fast.csv/.md/.png. Its `base` run is the same run directory as
+`ablations.py --config=configs/clevr.py:scene`'s `full` (study_common.run_id), so the two studies
+share it. About 80 min per point alone on the 2026-11-27 host (seed 3 of `scene`: 79.5 min).
 
 Time: 45 min measured on the 2-core CPU for the defaults (600 steps, 20 scenes; 19:17–20:11 on
 2026-11-22, experiments/journal/2026-11.md); --dry_run prints an estimate from the cost model in
-study_common.py (0.3 s per quick step, 2.6 s per 64² scene). The
+study_common.py (0.3 s per paper_cpu step, 2.6 s per 64² scene). The
 32² set is generated once (about a minute) before its first run. Runs live in --root (default
 runs/study/, shared with ablations.py and stability.py); a finished run is skipped, so running the
 script again resumes where it stopped.
@@ -52,7 +52,7 @@ sys.path.insert(0, REPO)
 from experiments import study_common as sc  # noqa: E402  (no JAX import)
 from experiments import study_tables as st  # noqa: E402
 
-BASE = "configs/clevr.py:quick"
+BASE = "configs/clevr.py:paper_cpu"
 NUM_STEPS = 600  # per run: the seven points in about 45 min (experiments/journal/2026-11.md)
 WIDE_ENCODER = {"model.encoder_stem_width": 64, "model.encoder_widths": (64, 128, 256),
                 "model.feature_dim": 64}
@@ -65,8 +65,8 @@ POINTS = {
     "wide_encoder": WIDE_ENCODER,
     "cheap": {"data.image_size": 32, "render.num_samples": 16},
 }
-# One axis of `fast` at a time, each side of its value: what the scene-sized model's cuts cost.
-FAST_POINTS = {
+# One axis of `scene` at a time, each side of its value: what the scene-sized model's cuts cost.
+SCENE_POINTS = {
     "base": {},
     "samples8": {"render.num_samples": 8},
     "samples32": {"render.num_samples": 32},
@@ -78,8 +78,8 @@ FAST_POINTS = {
     "colour64": {"model.colour_hidden": 64},
 }
 # --grid: (base config, points, budget, file stem); budget None: the config's own train.num_steps.
-GRIDS = {"quick": (BASE, POINTS, NUM_STEPS, "pareto"),
-         "fast": ("configs/clevr.py:fast", FAST_POINTS, None, "pareto_fast")}
+GRIDS = {"paper_cpu": (BASE, POINTS, NUM_STEPS, "pareto"),
+         "scene": ("configs/clevr.py:scene", SCENE_POINTS, None, "pareto_fast")}
 # (CSV column, axis label) of the figure's rows and columns.
 METRICS = (("psnr_novel", "novel-view PSNR (dB)"), ("fg_ari", "FG-ARI"))
 COSTS = (("train_s", "training wall-clock (s)"), ("render_per_view_s", "render time per view (s)"))
@@ -168,10 +168,10 @@ def parse_args(argv=None):
   p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   p.add_argument("--root", default=sc.DEFAULT_ROOT, help="where the run directories go")
   p.add_argument("--results_dir", default=sc.RESULTS_DIR, help="where pareto.csv/.md/.png go")
-  p.add_argument("--grid", default="quick", choices=sorted(GRIDS),
-                 help="quick: variations of configs/clevr.py:quick; fast: of configs/clevr.py:fast")
+  p.add_argument("--grid", default="paper_cpu", choices=sorted(GRIDS),
+                 help="paper_cpu: variations of configs/clevr.py:paper_cpu; scene: of configs/clevr.py:scene")
   p.add_argument("--num_steps", type=int, default=None,
-                 help=f"training budget per run (default: the grid's, {NUM_STEPS} for quick)")
+                 help=f"training budget per run (default: the grid's, {NUM_STEPS} for paper_cpu)")
   p.add_argument("--eval_scenes", type=int, default=20, help="test scenes evaluated per run")
   p.add_argument("--eval_split", default="test")
   p.add_argument("--seed", type=int, default=0)

@@ -1,10 +1,10 @@
 """Where the time of one compiled train step goes, by model part, forward and backward.
 
   python experiments/profile_step.py --config=A --steps=3
-  python experiments/profile_step.py --config=quick --top=25
+  python experiments/profile_step.py --config=paper_cpu --top=25
 
 Captures a JAX profiler trace of a few steps of the same jitted step as experiments/bench.py
-(configurations A, B, quick, … defined there), sums the duration of every executed XLA
+(configurations A, B, paper_cpu, … defined there), sums the duration of every executed XLA
 instruction, and attributes each to the model scope its HLO metadata names (e.g.
 `allocation/transformer/block_2/self_attn`), split into forward, backward (`transpose(…)`) and
 optimiser. Prints a table (share of the step per scope) and the most expensive instructions, and

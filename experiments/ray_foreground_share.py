@@ -1,6 +1,6 @@
 """Share of training rays that land on objects, per ray-sampling mode (data/pipeline.py).
 
-  python experiments/ray_foreground_share.py [--config=configs/clevr.py:quick] [--scenes=20]
+  python experiments/ray_foreground_share.py [--config=configs/clevr.py:paper_cpu] [--scenes=20]
 
 Draws 50 training batches from the validation scenes (they have ground-truth masks; the sampler
 never looks at them) and prints the fraction of rays whose pixel is foreground, for uniform,
@@ -48,7 +48,7 @@ def object_oversampling(images: np.ndarray, masks: np.ndarray, *, mix: float) ->
 
 def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("--config", default="configs/clevr.py:quick")
+  parser.add_argument("--config", default="configs/clevr.py:paper_cpu")
   parser.add_argument("--scenes", type=int, default=20)
   parser.add_argument("--batches", type=int, default=50)
   args = parser.parse_args()

@@ -2,12 +2,13 @@
 
   python experiments/stability.py --dry_run     # the plan and its estimated time, nothing run
   python experiments/stability.py               # train + evaluate, then write the table
-  python experiments/stability.py --config=configs/clevr.py:quick --seeds=5
-  python experiments/stability.py --config=configs/clevr.py:fast --eval_scenes=100 \
-      --workdirs=runs/fast_s0,runs/fast_s1,...   # seeds trained with slotlifter_jax.main
+  python experiments/stability.py --config=configs/clevr.py:paper_cpu --seeds=5
+  python experiments/stability.py --config=configs/clevr.py:scene --eval_scenes=100 \
+      --workdirs=runs/scene_s0,runs/scene_s1,...   # seeds trained with slotlifter_jax.main
 
-Trains --config (default configs/room_chair.py:quick, the base of ablations.py) with seeds
-0..N-1 (default 5) for --num_steps steps each (schedules scaled to the budget, study_common.py),
+Trains --config (default configs/clevr.py:scene, the base of ablations.py) with seeds 0..N-1
+(default 5) for --num_steps steps each (default: the config's own; a variant's schedules follow
+the budget, study_common.py),
 evaluates each run's last checkpoint on the first --eval_scenes test scenes and writes
 experiments/results/stability.csv (one row per seed) and stability.md: per metric the mean ±
 sample std, min and max over seeds, the collapse rate (runs whose last validation flags collapse,
@@ -17,9 +18,9 @@ With the defaults, the run directories are exactly those of ablations.py's `full
 directory name is a hash of the config, its overrides, seed and budget: study_common.run_id), so
 after ablations.py only seeds 3 and 4 are new.
 
-Time: 11 min measured for seeds 3 and 4 after ablations.py (5 × 600 steps, 20 scenes; alone
-about 27 min, estimated from those runs), on the 2-core CPU on 2026-11-22; --dry_run prints an
-estimate.
+Time: 46–64 min per seed alone on the 2-core reference host with the defaults (docs/fast_model.md);
+the earlier 600-step study (`--config=configs/room_chair.py:paper_cpu --num_steps=600
+--eval_scenes=20`) took 11 min for seeds 3 and 4 after ablations.py; --dry_run prints an estimate.
 A finished run is skipped, so running the script again resumes where it stopped.
 
 With --workdirs the script trains nothing: it summarises finished runs of --config, one per seed,
@@ -51,8 +52,9 @@ from experiments import study_workdirs as sw  # noqa: E402
 COLUMNS = ablations.COLUMNS + (("active_slots", "active slots", 1.0, 2),)
 
 
-def plan(*, config: str = ablations.BASE, num_steps: int = ablations.NUM_STEPS,
+def plan(*, config: str = ablations.BASE, num_steps: int | None = ablations.NUM_STEPS,
          seeds=range(5)) -> list[sc.Run]:
+  num_steps = ablations.budget(config, num_steps)
   # Named like ablations.py's unmodified variant, so a shared run reads the same in both tables.
   return [sc.Run(name="full", config=config, overrides={}, seed=seed, num_steps=num_steps)
           for seed in seeds]
@@ -105,7 +107,8 @@ def parse_args(argv=None):
   p.add_argument("--root", default=sc.DEFAULT_ROOT, help="where the run directories go")
   p.add_argument("--results_dir", default=sc.RESULTS_DIR, help="where stability.csv/.md go")
   p.add_argument("--config", default=ablations.BASE)
-  p.add_argument("--num_steps", type=int, default=ablations.NUM_STEPS, help="budget per run")
+  p.add_argument("--num_steps", type=int, default=ablations.NUM_STEPS,
+                 help="budget per run (default: the config's own train.num_steps)")
   p.add_argument("--eval_scenes", type=int, default=ablations.EVAL_SCENES)
   p.add_argument("--eval_split", default="test")
   p.add_argument("--seeds", type=int, default=5, help="seeds 0..N-1")

@@ -19,7 +19,7 @@ training budget (steps). `execute(run, root=...)`:
 A run whose result JSON exists is skipped; a run with a finished training but no result is only
 evaluated. So re-running a study script resumes where it stopped.
 
-Why the schedules follow the budget: configs/*.py:quick anneal masking and slot noise over 3000 of
+Why the schedules follow the budget: configs/*.py:paper_cpu anneal masking and slot noise over 3000 of
 6500 steps. Cut to 1000 steps with fixed schedules, a run would stop with most of its rays still
 masked and the locality constraint on, and the "without random masking" ablation would compare a
 finished method against an unfinished one. The variants state each schedule as a share of
@@ -73,14 +73,14 @@ CSV_COLUMNS = (("study", "name", "config", "overrides", "seed", "num_steps", "ru
                ("collapsed", "collapse_step", "probe_active_slots", "probe_largest_share"))
 
 # Rough cost model for --dry_run (estimates, not measurements): experiments/journal/2026-11.md
-# measured configs/clevr.py:quick at about 0.3 s per step (64², 32 samples, 2 × 256 rays) on the 2-core CPU,
+# measured configs/clevr.py:paper_cpu at about 0.3 s per step (64², 32 samples, 2 × 256 rays) on the 2-core CPU,
 # and evaluation at about 2.6 s per 4-view scene at 64²; the allocation transformer is most of a
 # step, so its part scales with rays × samples × its blocks × widths, and a view's render with
 # pixels × samples. What does not shrink with the decoder (encoder, optimiser, host work) is a
-# fixed part per step, fitted so that clevr.py:fast comes out near its measured ~0.045 s per
+# fixed part per step, fitted so that clevr.py:scene comes out near its measured ~0.045 s per
 # step with validations (docs/fast_model.md).
 _REF_STEP_S, _REF_RAYS, _REF_SAMPLES = 0.3, 2 * 256, 32
-_REF_DECODER = 4 * (64 + 256)  # quick: num_blocks × (point_dim + ffn_dim)
+_REF_DECODER = 4 * (64 + 256)  # paper_cpu: num_blocks × (point_dim + ffn_dim)
 _FIXED_STEP_S = 0.025
 _REF_SCENE_S, _REF_PIXELS = 2.6, 64 * 64
 _COMPILE_S = 60.0  # step + renderer compilation and set-up per run, a guess
@@ -98,7 +98,7 @@ class TrainingStopped(RuntimeError):
 class Run:
   """One training run of a study. `overrides` maps dotted config keys to values."""
   name: str  # the point / variant this run belongs to (a CSV column, not part of the identity)
-  config: str  # "configs/clevr.py:quick" (relative to the repository, or absolute)
+  config: str  # "configs/clevr.py:paper_cpu" (relative to the repository, or absolute)
   overrides: Mapping[str, Any]
   seed: int
   num_steps: int
@@ -114,7 +114,7 @@ def load_config(spec: str):
   full = path if os.path.isabs(path) else os.path.join(REPO, path)
   if not os.path.isfile(full):
     raise StudyError(f"config file {path!r} not found (looked for {full}); use e.g. "
-                     f"configs/clevr.py:quick")
+                     f"configs/clevr.py:paper_cpu")
   module_spec = importlib.util.spec_from_file_location(
       "study_config_" + hashlib.sha1(full.encode()).hexdigest()[:8], full)
   module = importlib.util.module_from_spec(module_spec)

@@ -29,7 +29,7 @@ RESULTS = os.path.join(REPO, "experiments", "results")
 PAGES = ("README.md", "docs")  # README.md and every docs/*.md
 MARKER = re.compile(r"^<!-- (/?)table:([A-Za-z0-9_]+) -->$")
 
-# The five seeds of `configs/clevr.py:fast` through the README's training command, each evaluated
+# The five seeds of `configs/clevr.py:scene` through the README's training command, each evaluated
 # at its best checkpoint by validation: (seed label, the average of the parameters, the trained
 # parameters, the paired validation comparison of the two at the last checkpoint). Seed 0 failed
 # the step-14 000 check and the command trained seed 1000; seeds 1 and 2 ended on their best.

@@ -12,9 +12,10 @@ evaluation and rendering read `eval_params`: the average when it is on, the trai
 otherwise (`--params=trained` evaluates or renders the trained ones of a run that keeps both). A skipped (non-finite) step keeps the old optimiser state (train_step), so it leaves
 the average as it was.
 
-Why: over the release of `fast`'s masking floor, validation FG-ARI moves by up to 0.06 between
-checkpoints 2000 steps apart (experiments/journal/2026-11.md, "Twenty-seventh round"), so which
-one the run ends on decides much of its last checkpoint's score. An average of the weights is the
+Why: over the release of `scene`'s masking floor, validation FG-ARI moves by up to 0.06 between
+checkpoints 2000 steps apart (experiments/journal/2026-11.md, "the 50 000-step schedule on seed 0,
+and which checkpoint is evaluated"), so which one the run ends on decides much of its last
+checkpoint's score. An average of the weights is the
 usual way to end on a settled model (Polyak & Juditsky 1992; the EMA of Tarvainen & Valpola 2017).
 
 Off (d = 0), nothing is added to the optimiser state, so every checkpoint written without it

@@ -168,7 +168,7 @@ def mlp_density(*, raw: jax.Array, log_scale: jax.Array) -> jax.Array:
   The "without slot-based density" ablation (docs/method.md §5). softplus, not exp: it is the smooth
   counterpart of the ReLU in `slot_density`, so σ grows linearly with the head's output as the slot
   formula does with A_k, and the learned log scale s_σ with its init `density_log_init` (which the
-  quick variant lowers so a ray's first samples start transparent) means the same in both modes;
+  paper_cpu variant lowers so a ray's first samples start transparent) means the same in both modes;
   exp(o) would make σ exponential in an unbounded output. Unlike ReLU its gradient never vanishes,
   so a head that starts negative can still grow density.
   """

@@ -2,7 +2,8 @@
 
 It holds the paper's settings for the synthetic sets (docs/method.md §1–2). A data-set config
 overrides the few fields that differ (K, near/far, feature width, fine pass, …) and derives its
-variants (`smoke`, `quick`) by overriding a few more, so no setting is written twice.
+variants (`scene`, `paper_cpu`, `easy`, `smoke`) by overriding a few more, so no setting is
+written twice.
 """
 
 import ml_collections
@@ -27,10 +28,6 @@ def base_config() -> ml_collections.ConfigDict:
   m.slot_mlp_dim = 1024
   m.slot_eps = 1.0
   m.slot_drop_path = 0.2  # stochastic depth on the slot MLP residual
-  # Not in the paper (which relies on the ray channels of the encoder input for position): add a
-  # learned linear embedding of each feature cell's (x, y, 1−x, 1−y) to the slot attention's
-  # input, as Locatello et al. 2020 do. A probe of issue "Objects emerge on this CPU".
-  m.slot_position_embedding = False
   m.point_dim = 64  # width of the allocation transformer
   m.num_blocks = 4
   m.num_heads = 4
@@ -44,27 +41,15 @@ def base_config() -> ml_collections.ConfigDict:
   m.density_scale = 25.0  # α = 1 − exp(−σ·δ·density_scale)
   m.density_log_init = 0.0  # initial value of the learned log density scale s_σ (official: 0)
   m.locality_box = 0.64  # |coordinate| beyond which only slots 0 and 1 may take a point
-  # Not in the paper: a ground-plane prior for sets whose floor is the plane z = 0 of the
-  # normalised frame (uORF sets, the embedded set). While the locality constraint holds, points
-  # below `locality_floor_z` also count as outside the box, so slot 1 is the only real slot that
-  # can hold the floor; the paper's box lets any slot take the floor inside it, where runs have
-  # shared it out among object slots (experiments/README.md, "Eighteenth round").
-  m.locality_floor = False
-  m.locality_floor_z = 0.01
-  # Not the paper's: while the locality constraint holds, source-view feature cells whose ray
-  # never enters the locality box go to slot attention's first slot only, the one the decoder
-  # keeps for points outside the box (docs/method.md §1.4). Off: it splits seed 3 at 1e-4 and
-  # collapses seed 1 into that slot (experiments/README.md, "Nineteenth round"); from step 6000
-  # on (`train.locality_attention_start`) it does neither ("Twentieth round").
-  m.locality_attention = False
   m.remat_scan = False  # nn.scan + nn.remat over the decoder blocks: less memory, more time
   # The decoder's cross-attention and point-slot mapping, and E_p's direction half, in a folded
   # order (folded.folded_cross_attention, folded.folded_mapping, model.PointEmbedding): the same
-  # parameters and function to float32 rounding, 0.90× the `fast` step and 0.87× `quick`'s. Off:
-  # its rounding makes other trajectories, so the README's seed table (trained unfolded) would not
-  # repeat. The one `fast` run made with it (seed 0, 2026-12-03) lost its floor after step 30 000,
-  # but so did the unfolded order forked from that step (experiments/README.md, "Thirty-third
-  # round"); whether the folds change how often runs split is not measured.
+  # parameters and function to float32 rounding, 0.90× the `scene` step and 0.87× `paper_cpu`'s.
+  # Off: its rounding makes other trajectories, so the README's seed table (trained unfolded) would
+  # not repeat. The one `scene` run made with it (seed 0, 2026-12-03) lost its floor after step
+  # 30 000, but so did the unfolded order forked from that step (experiments/journal/2026-12.md,
+  # "the late loss of the floor, forked from step 30 000"); whether the folds change how often
+  # runs split is not measured.
   m.fold_products = False
   # Computation dtype: "float32", or "bfloat16" for bf16 matmuls and convolutions with float32
   # parameters, softmaxes, norm statistics, volume rendering and loss (model.py, "Numerics";
@@ -92,7 +77,7 @@ def base_config() -> ml_collections.ConfigDict:
   # through the centre, the paper's.
   r.supersample = 1
   # Adaptive full-view rendering in --mode=eval and --mode=render (slotlifter_jax/rendering/adaptive.py,
-  # issue #7): the decoder runs the whole grid on every stride-th pixel only and a window of
+  # docs/performance.md): the decoder runs the whole grid on every stride-th pixel only and a window of
   # `adaptive_window` grid samples elsewhere. Off: every pixel on the whole grid (exact).
   r.adaptive = False
   r.adaptive_stride = 3  # proposal pixels every stride-th row and column (+ the last ones)
@@ -173,17 +158,12 @@ def base_config() -> ml_collections.ConfigDict:
   # Not in the paper: slot attention's parameters follow the backbone schedule times this factor
   # (1: the paper's, one schedule for the whole backbone). At base rate 1e-4 every run that lost
   # the floor had it shared out already in slot attention's own grouping (`attn_ari` ≤ 0.07),
-  # while the gain in FG-ARI over 5e-5 comes from the decoder (experiments/README.md,
-  # "Eighteenth round").
+  # while the gain in FG-ARI over 5e-5 comes from the decoder (experiments/journal/2026-11.md,
+  # "the floor, from the locality box to slot attention"; docs/fast_model.md §3).
   t.slot_attention_lr_scale = 1.0
-  # Not in the paper: the scale holds for the first N steps, then slot attention follows the
-  # backbone's rate (0: throughout). A probe of the late loss of the floor: from one run's split
-  # state at step 30 000, 1× held the floor to step 38 000 in one summation order and did not
-  # hold it through the release in the other (experiments/README.md, "Thirty-fourth round").
-  # Slot attention keeps its optimiser group either way, so a resume may change this field.
-  t.slot_attention_lr_scale_steps = 0
   # "lion" (paper) or "adamw" (Lion moves every weight by ±lr each step whatever the gradient's
-  # size; AdamW was tried for the small quick batch and fitted one scene no faster: README).
+  # size; AdamW was tried for the small paper_cpu batch and fitted one scene no faster:
+  # docs/quick_model.md).
   t.optimizer = "lion"
   t.b1 = 0.9
   t.b2 = 0.99  # Lion's β2
@@ -194,8 +174,8 @@ def base_config() -> ml_collections.ConfigDict:
   t.mask_max = 0.99
   # Masking ratio the anneal ends at and holds (0: the paper's, every ray keeps its lifted features
   # after mask_anneal_steps). Not in the paper: slot attention's grouping rises while rays are
-  # masked and fades once none are (experiments/README.md, "Fifth round"), a probe of issue
-  # "Objects emerge on this CPU". Evaluation never masks.
+  # masked and fades once none are (experiments/journal/2026-11.md, "a masking floor";
+  # docs/fast_model.md §3). Evaluation never masks.
   t.mask_min = 0.0
   t.mask_min_steps = 0  # the floor holds until this step, then every ray keeps its features (0: never)
   t.mask_min_release_steps = 0  # lower the floor to 0 along a cosine over this many steps (0: at once)
@@ -204,9 +184,6 @@ def base_config() -> ml_collections.ConfigDict:
   t.select_by = "nv_ari"
   t.noise_anneal_steps = 30_000  # slot init noise σ 1 → 0
   t.locality_steps = 50_000  # locality constraint on for the first N steps (0: never)
-  # With `model.locality_attention`: slot attention applies its side of the constraint only from
-  # this step on (0: from the start), up to `locality_steps`.
-  t.locality_attention_start = 0
   t.max_nonfinite_in_row = 20
   # Not in the paper: an exponential moving average of the parameters with this decay (0: off),
   # tracking them exactly until `ema_start_step` updates; validation, evaluation and rendering then
@@ -238,7 +215,7 @@ def base_config() -> ml_collections.ConfigDict:
   # 96 samples need about twice the temporaries of bench config A; two chunks fit a 24 GB
   # machine (docs/performance.md §4).
   t.grad_accum_chunks = 2
-  # …and the rays of each chunk into this many parts (memory mode: experiments/README.md).
+  # …and the rays of each chunk into this many parts (memory mode: docs/performance.md).
   t.ray_chunks = 1
   # Random-bit generator of every training key. "unsafe_rbg" makes dropout/masking bits cheaper
   # (threefry dropout masks were a large share of a CPU step: docs/performance.md §2) and compiles
@@ -247,15 +224,22 @@ def base_config() -> ml_collections.ConfigDict:
   return c
 
 
+# Former variant names: `fast` was the scene-sized model, `quick` the paper's model at CPU widths.
+RENAMED = {"fast": "scene", "quick": "paper_cpu"}
+
+
 def apply_variant(c: ml_collections.ConfigDict, variant: str) -> ml_collections.ConfigDict:
   """Derives a variant from a data-set config by overriding a few fields (never by copying).
 
-  Variants compose left to right with '+', e.g. `clevr.py:fast+easy`.
+  Variants compose left to right with '+', e.g. `clevr.py:scene+easy`. A former name is refused
+  with its new one (RENAMED), so a command that used it fails instead of training something else.
   """
   if variant in ("", "paper"):
     return c
-  known = {"quick": quick, "smoke": smoke, "fast": fast, "easy": easy}
+  known = {"scene": scene, "paper_cpu": paper_cpu, "smoke": smoke, "easy": easy}
   for name in variant.split("+"):
+    if name in RENAMED:
+      raise ValueError(f"variant {name!r} was renamed {RENAMED[name]!r}; use the new name")
     if name not in known:
       raise ValueError(f"unknown variant {name!r}: use '', 'paper' or a '+'-joined list of "
                        f"{sorted(known)}")
@@ -276,12 +260,11 @@ def _share(steps, num: int, den: int, multiple_of=1):
   return (steps * (2 * num) + den * multiple_of) // (2 * den * multiple_of) * multiple_of
 
 
-def quick(c):
-  """A CPU-sized run of the same method: 64×64, a narrower ResNet-18-style encoder, fewer rays and
-  samples, and every schedule compressed to 6500 steps; s_σ starts at −3 and base_lr is the
-  paper's, because a more opaque start or a higher rate left every run in a "fog" at the near plane.
+def paper_cpu(c):
+  """The paper's model and method shrunk to a CPU (formerly `quick`): 64×64, a narrower
+  ResNet-18-style encoder, fewer rays and samples, every schedule compressed to 6500 steps.
 
-    python -m slotlifter_jax.main --config=configs/clevr.py:quick --workdir=DIR
+    python -m slotlifter_jax.main --config=configs/clevr.py:paper_cpu --workdir=DIR
 
   Expected (best checkpoint, 100 scenes of the former test split): novel-view PSNR 22.81 dB,
   FG-ARI 0.172, NV-ARI 0.654 (`experiments/results/clevr_quick_test_metrics.json`): it renders the
@@ -299,13 +282,16 @@ def quick(c):
   c.model.feature_dim = 32
   c.render.num_samples = 32
   # Adaptive rendering (off by default): the setting experiments/bench_render.py picked for the
-  # trained quick model (×1.3 at −0.06 dB; experiments/README.md).
+  # trained model (×1.3 at −0.06 dB; experiments/journal/2026-11.md, "Adaptive full-view
+  # rendering").
   c.render.adaptive_stride = 4
   c.render.adaptive_window = 16
   c.train.num_steps = 6500
   c.train.batch_scenes = 2
   c.train.rays_per_scene = 256
   c.train.grad_accum_chunks = 1
+  # A more opaque start or a higher rate left every run in a "fog" at the near plane
+  # (docs/quick_model.md).
   c.model.density_log_init = -3.0
   c.train.base_lr = 5e-5
   # Every schedule a fixed share of the budget (`_share`): 200, 4000, 3000, 3000 and 4000 of the
@@ -359,12 +345,11 @@ def smoke(c):
   return c
 
 
-def fast(c):
-  """The scene-sized CPU model: the quick variant's method and loss with no more model than a
-  64 px CLEVR scene needs, a masking floor released along a cosine, and a restart check at step
-  14 000; the README's training command.
+def scene(c):
+  """The scene-sized headline model (formerly `fast`): `paper_cpu`'s method and loss with no more
+  model than a 64 px CLEVR scene needs; the README's training command.
 
-    python -m slotlifter_jax.main --config=configs/clevr.py:fast --workdir=DIR
+    python -m slotlifter_jax.main --config=configs/clevr.py:scene --workdir=DIR
 
   Expected (best checkpoint with the moving average, 100 scenes of the development split, the
   former test split): FG-ARI and NV-ARI ≥ 0.8 on five seeds of five, novel-view PSNR about 26 dB
@@ -374,10 +359,10 @@ def fast(c):
   what it saves and what it costs, and the probes behind the recipe: docs/fast_model.md.
   """
   if not tuple(c.data.get("scene_z_range", ())):
-    raise ValueError(f"variant 'fast' samples rays only inside data.scene_z_range, which this "
+    raise ValueError(f"variant 'scene' samples rays only inside data.scene_z_range, which this "
                      f"config (data.format={c.data.format!r}, data.subset={c.data.subset!r}) "
                      f"leaves empty: configs/clevr.py and configs/room_chair.py set it")
-  c = quick(c)
+  c = paper_cpu(c)
   c.model.slot_dim = 32
   c.model.slot_mlp_dim = 64
   c.model.point_dim = 32

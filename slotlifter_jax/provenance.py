@@ -2,7 +2,7 @@
 carries under "provenance".
 
 A number without its config, commit and machine cannot be compared with another one: the same
-`fast` step took 2.4× as long on two hosts of one cloud, and a recipe changes between commits.
+`scene` step took 2.4× as long on two hosts of one cloud, and a recipe changes between commits.
 `collect` gathers
 
 - `config`: the resolved config the result was computed with (as `config.json` stores it);

@@ -31,7 +31,7 @@ if _LEVEL not in os.environ.get("XLA_FLAGS", ""):
   os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_LEVEL}=0".strip()
 # XLA:CPU's older loop emitters instead of its MLIR fusion emitters: at -O0 the smoke train step
 # compiles in 14.0 s instead of 21.1 s (2026-12-01's AVX2 host). Not for training: at the default
-# level they compile the `fast` step in 82–94 s instead of 30–34 s and run it no faster
+# level they compile the `scene` step in 82–94 s instead of 30–34 s and run it no faster
 # (experiments/journal/2026-11.md, "Compile time").
 _EMITTERS = "--xla_cpu_use_fusion_emitters"
 if _EMITTERS not in os.environ["XLA_FLAGS"]:

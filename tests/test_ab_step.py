@@ -37,9 +37,9 @@ def test_paired_summary_refuses_unequal_rounds():
 
 
 def test_a_config_pair_names_each_sides_configuration():
-  assert ab_step.config_pair("fast") == ("fast", "fast")
-  assert ab_step.config_pair("fast:fast_fold") == ("fast", "fast_fold")
-  for bad in ("fast:", ":fast", "a:b:c"):
+  assert ab_step.config_pair("scene") == ("scene", "scene")
+  assert ab_step.config_pair("scene:scene_fold") == ("scene", "scene_fold")
+  for bad in ("scene:", ":scene", "a:b:c"):
     with pytest.raises(ValueError, match="neither NAME nor BASE:HEAD"):
       ab_step.config_pair(bad)
 
@@ -52,7 +52,7 @@ def _run(*args):
 def test_the_command_refuses_an_existing_out_file_and_leaves_it(tmp_path):
   out = tmp_path / "ab.json"
   out.write_text("earlier results")
-  proc = _run("--configs=fast", f"--out={out}")
+  proc = _run("--configs=scene", f"--out={out}")
   assert proc.returncode != 0
   assert "exists; not overwritten" in proc.stderr
   assert out.read_text() == "earlier results"
@@ -60,7 +60,7 @@ def test_the_command_refuses_an_existing_out_file_and_leaves_it(tmp_path):
 
 @pytest.mark.parametrize("args, message", [
     (["--configs=nope"], "unknown ['nope']"),
-    (["--configs=fast:nope"], "unknown ['nope']"),
+    (["--configs=scene:nope"], "unknown ['nope']"),
     (["--base=no-such-revision-or-folder"], "neither a directory nor a git revision"),
 ])
 def test_the_command_names_a_bad_flag(tmp_path, args, message):

@@ -68,9 +68,9 @@ def test_the_average_is_named_so_only_once_it_has_averaged(start):
 
 
 def test_the_average_does_not_change_what_trains():
-  """The same gradients through fast's optimiser with and without the average move the parameters
+  """The same gradients through scene's optimiser with and without the average move the parameters
   identically; only the average is added to the state."""
-  config = load_config("clevr", "fast+smoke")
+  config = load_config("clevr", "scene+smoke")
   rng = np.random.default_rng(1)
   params = {"encoder": {"w": jnp.asarray(rng.normal(size=(4, 3)), jnp.float32)},
             "colour_head": {"w": jnp.asarray(rng.normal(size=(3,)), jnp.float32)}}

@@ -1,5 +1,5 @@
 """The README's commands, run as a new user runs them: `python -m slotlifter_jax.main` in a fresh
-folder with relative paths, the smoke variant in place of fast.
+folder with relative paths, the smoke variant in place of scene.
 
 Train, SIGINT, resume, eval and render, checking exit codes and files. The README is read too: a
 `slotlifter_jax.main` command it shows with a mode or flag this test does not run fails the test,
@@ -54,12 +54,12 @@ def test_every_readme_command_is_one_this_file_runs():
 
 
 def _readme_command(mode: str) -> list[str]:
-  """The README's first (`fast`) command of `mode`, with the smoke variant."""
+  """The README's first (`scene`) command of `mode`, with the smoke variant."""
   for args in readme_commands():
-    if (mode_and_flags(args)[0] == mode and "configs/clevr.py:fast" in " ".join(args)
+    if (mode_and_flags(args)[0] == mode and "configs/clevr.py:scene" in " ".join(args)
         and "--distributed" not in args):
-      return [a.replace("configs/clevr.py:fast", "configs/clevr.py:smoke") for a in args]
-  raise AssertionError(f"README shows no fast {mode} command")
+      return [a.replace("configs/clevr.py:scene", "configs/clevr.py:smoke") for a in args]
+  raise AssertionError(f"README shows no scene {mode} command")
 
 
 def _main(args, cwd, **kwargs):
@@ -130,6 +130,7 @@ FOUND_AFTER_JAX_STARTS = ("data.root does not exist", "exists and is not a direc
     (["--config=configs/nonexistent.py"], "--config=configs/nonexistent.py: cannot be loaded"),
     (["--config=configs/clevr.py:smoke", "--config.train.base_lrr=1"], 'did you mean "base_lr"'),
     (["--config=configs/clevr.py:nonvariant"], "unknown variant 'nonvariant'"),
+    (["--config=configs/clevr.py:fast"], "variant 'fast' was renamed 'scene'"),
     (["--config=configs/clevr.py:smoke", "--config.data.root=/nonexistent"],
      "/nonexistent: data.root does not exist"),
     (["--config=configs/clevr.py:smoke", "--workdir=a_file"], "a_file: exists and is not a directory"),

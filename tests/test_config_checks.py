@@ -27,10 +27,10 @@ def load(path: str, variant: str = ""):
 
 @pytest.mark.parametrize("path", sorted(glob.glob(os.path.join(REPO, "configs", "*.py"))),
                          ids=os.path.basename)
-@pytest.mark.parametrize("variant", ["", "quick", "fast", "smoke", "fast+easy"])
+@pytest.mark.parametrize("variant", ["", "paper_cpu", "scene", "smoke", "scene+easy"])
 def test_every_shipped_config_passes(path, variant):
-  if "fast" in variant and os.path.basename(path) not in ("clevr.py", "room_chair.py"):
-    # fast samples only inside the scene's slab, which only these sets measure: refused, never
+  if "scene" in variant and os.path.basename(path) not in ("clevr.py", "room_chair.py"):
+    # scene samples only inside the scene's slab, which only these sets measure: refused, never
     # silently run over the whole ray.
     with pytest.raises(ValueError, match="data.scene_z_range"):
       load(path, variant)

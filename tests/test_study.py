@@ -169,7 +169,7 @@ def test_bad_input_names_the_problem(tmp_path):
   with pytest.raises(sc.StudyError, match="'seedx'"):
     sc.run_config(bad(overrides={"seedx": 1}))
   with pytest.raises(sc.StudyError, match="configs/nope.py"):
-    sc.run_config(bad(config="configs/nope.py:quick"))
+    sc.run_config(bad(config="configs/nope.py:paper_cpu"))
   with pytest.raises(sc.StudyError, match="unknown variant 'quik'"):
     sc.run_config(bad(config="configs/clevr.py:quik"))
   with pytest.raises(sc.StudyError, match="budget"):
@@ -183,16 +183,16 @@ def test_bad_input_names_the_problem(tmp_path):
 
 
 def test_budget_scales_the_schedules_and_run_ids_follow_the_config():
-  quick = sc.load_config("configs/room_chair.py:quick").train
-  half = int(quick.num_steps) // 2
-  run = sc.Run(name="full", config="configs/room_chair.py:quick", overrides={}, seed=0,
+  paper_cpu = sc.load_config("configs/room_chair.py:paper_cpu").train
+  half = int(paper_cpu.num_steps) // 2
+  run = sc.Run(name="full", config="configs/room_chair.py:paper_cpu", overrides={}, seed=0,
                num_steps=half)
   c = sc.run_config(run)
   t = c.train
   fields = ("warmup_steps", "decay_steps", "mask_anneal_steps", "noise_anneal_steps",
             "locality_steps")
-  # Half the budget, half of every schedule (the quick variant's are even numbers of steps).
-  assert [t[f] for f in fields] == [int(quick[f]) // 2 for f in fields]
+  # Half the budget, half of every schedule (the paper_cpu variant's are even numbers of steps).
+  assert [t[f] for f in fields] == [int(paper_cpu[f]) // 2 for f in fields]
   assert (t.num_steps, t.eval_every) == (half, half // 2)
   assert collapse.settled_step(t) < t.num_steps  # the last flag means collapse
   assert c.data.family == "room" and c.model.num_slots == 5 and c.data.image_size == 64
@@ -382,29 +382,29 @@ def test_diagnose_slots_runs_on_a_trained_run(smoke_run, capsys):
 
 
 # ---------------------------------------------------------------------------------------------
-# pareto.py's grid at fast's budget. (stability.py --workdirs: tests/test_study_workdirs.py.)
+# pareto.py's grid at scene's budget. (stability.py --workdirs: tests/test_study_workdirs.py.)
 
 
-def test_pareto_fast_grid_plans_one_axis_of_fast_at_its_own_budget(tmp_path, capsys):
-  pareto.main(["--grid=fast", "--dry_run", f"--root={tmp_path}", "--points=base,samples8"])
+def test_pareto_scene_grid_plans_one_axis_of_scene_at_its_own_budget(tmp_path, capsys):
+  pareto.main(["--grid=scene", "--dry_run", f"--root={tmp_path}", "--points=base,samples8"])
   lines = capsys.readouterr().out.splitlines()
   assert len(lines) == 3 and lines[-1].startswith("2 runs;")
-  runs = pareto.plan(config="configs/clevr.py:fast", num_steps=50_000,
-                     points={k: pareto.FAST_POINTS[k] for k in ("base", "samples8")})
+  runs = pareto.plan(config="configs/clevr.py:scene", num_steps=50_000,
+                     points={k: pareto.SCENE_POINTS[k] for k in ("base", "samples8")})
   base, samples8 = (sc.run_config(r) for r in runs)
-  # fast's own budget: nothing rescaled, and only the named axis moves.
-  fast = sc.load_config("configs/clevr.py:fast")
-  assert base.train.mask_min_steps == fast.train.mask_min_steps == 40_000
+  # scene's own budget: nothing rescaled, and only the named axis moves.
+  scene = sc.load_config("configs/clevr.py:scene")
+  assert base.train.mask_min_steps == scene.train.mask_min_steps == 40_000
   assert (base.render.num_samples, samples8.render.num_samples) == (16, 8)
   assert samples8.train.rays_per_scene == base.train.rays_per_scene == 128
-  # fast restarts a failing seed; a study's run is one attempt (its two validations would not
-  # even fall on fast's check step), and the config it trains must pass train's checks.
-  assert fast.train.restarts > 0 and fast.train.restart_check_step % fast.train.eval_every == 0
+  # scene restarts a failing seed; a study's run is one attempt (its two validations would not
+  # even fall on scene's check step), and the config it trains must pass train's checks.
+  assert scene.train.restarts > 0 and scene.train.restart_check_step % scene.train.eval_every == 0
   assert (base.train.restarts, base.train.restart_check_step) == (0, 0)
   config_checks.check_config(base)
-  # The grid's base is the fast ablation study's `full` run: one training serves both.
+  # The grid's base is the scene ablation study's `full` run: one training serves both.
   assert sc.run_id(runs[0]) == sc.run_id(
-      ablations.plan(config="configs/clevr.py:fast", num_steps=50_000, seeds=range(1),
+      ablations.plan(config="configs/clevr.py:scene", num_steps=50_000, seeds=range(1),
                      variants={"full": ablations.VARIANTS["full"]})[0])
-  with pytest.raises(SystemExit, match=r"unknown points \['rays512'\] for --grid=fast"):
-    pareto.main(["--grid=fast", "--dry_run", "--points=rays512"])
+  with pytest.raises(SystemExit, match=r"unknown points \['rays512'\] for --grid=scene"):
+    pareto.main(["--grid=scene", "--dry_run", "--points=rays512"])

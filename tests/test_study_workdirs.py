@@ -149,12 +149,12 @@ def test_runs_are_read_with_the_parameters_they_kept(tmp_path):
       json.dumps(dict(json.loads(path.read_text()), parameters="average")))
   configs = [sw.check_workdir(str(d), SMOKE) for d in (plain, averaged)]
   assert [(c.train.ema_decay, c.train.ema_start_step) for c in configs] == [(0.0, 0), (0.99, 3)]
-  # `fast` keeps the average; a run of it trained without one is read without one.
-  fast = "configs/clevr.py:fast+smoke"
-  assert sc.load_config(fast).train.ema_decay > 0
-  old = _finished_run(tmp_path / "old", seed=3, fg_ari=0.8, psnr=20.0, spec=fast,
+  # `scene` keeps the average; a run of it trained without one is read without one.
+  scene = "configs/clevr.py:scene+smoke"
+  assert sc.load_config(scene).train.ema_decay > 0
+  old = _finished_run(tmp_path / "old", seed=3, fg_ari=0.8, psnr=20.0, spec=scene,
                       train__ema_decay=0.0)
-  assert sw.check_workdir(str(old), fast).train.ema_decay == 0.0
+  assert sw.check_workdir(str(old), scene).train.ema_decay == 0.0
   rows = sw.workdir_rows([str(plain), str(averaged)], config_spec=SMOKE, **kwargs)
   assert [r["parameters"] for r in rows] == ["trained", "average"]
   table = stability.table(rows, config=SMOKE)
@@ -167,9 +167,9 @@ def test_runs_are_read_with_the_parameters_they_kept(tmp_path):
 
 def test_a_restarted_run_counts_as_its_command_seed(tmp_path):
   """`train.restarts`: seed 1's first attempt was abandoned and seed 1001 trained the run, which
-  then had one of fast's two restarts left."""
+  then had one of scene's two restarts left."""
   from experiments import study_workdirs as sw
-  spec = "configs/clevr.py:fast+smoke"
+  spec = "configs/clevr.py:scene+smoke"
   kwargs = dict(config_spec=spec, study="stability", name="full", eval_split="test",
                 eval_scenes=2)
   plain = _finished_run(tmp_path / "s0", seed=0, fg_ari=0.8, psnr=20.0, spec=spec)
@@ -186,7 +186,7 @@ def test_a_restarted_run_counts_as_its_command_seed(tmp_path):
       sw.workdir_rows([str(d) for d in dirs], **kwargs)
 
   # An archived attempt that did not spend a restart is not a run of this command.
-  refused(r"/s2: trained with train.restarts=2, but configs/clevr.py:fast\+smoke has 1",
+  refused(r"/s2: trained with train.restarts=2, but configs/clevr.py:scene\+smoke has 1",
           [_finished_run(tmp_path / "s2", seed=1002, fg_ari=0.5, psnr=20.0, spec=spec,
                          archived=(2,))])
   # A plain seed-1 run beside the restarted one would count seed 1 twice.

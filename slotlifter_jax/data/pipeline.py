@@ -26,12 +26,12 @@ repeat. It uses the images only (no masks). It exists for CPU-sized runs, where 
 plain floor get few rays: on embedded clevr at 64×64 objects cover 11 % of the pixels, so about five
 of a scene's 256 uniform rays per step fall on each object; contrast sampling at mix 0.5 raises the
 objects' share of the rays to 41 % (experiments/ray_foreground_share.py). It reweights the
-photometric loss towards contrasted pixels, a departure from the paper. `clevr.py:fast` uses it
-(experiments/README.md, "Emergence", fourth round); it did not help the quick run (README, "The
-quick model"). Grey objects on the grey floor are not left out: on the 100 validation scenes the
+photometric loss towards contrasted pixels, a departure from the paper. `clevr.py:scene` uses it
+(docs/fast_model.md §3; experiments/journal/2026-11.md, "the scene frame, ray sampling, a longer
+masked phase, more scenes"); it did not help the `paper_cpu` run (docs/quick_model.md). Grey objects on the grey floor are not left out: on the 100 validation scenes the
 pixels of a grey object are drawn 3.88× as often as under uniform sampling, those of a coloured
 one 3.92× (medians over object views; `python experiments/ray_foreground_share.py
---config=configs/clevr.py:fast --scenes=100`).
+--config=configs/clevr.py:scene --scenes=100`).
 
 "floor_parallax" draws the same share `contrast_mix` by `parallax_weights`: the contrast above
 times how far a pixel's colour is from what the other views of its scene show where its ray meets
@@ -39,7 +39,7 @@ the floor plane z = 0. On a textured floor the median colour no longer marks the
 texture and walls are as far from it as the objects), and contrast sampling puts 17 % of the rays
 on the embedded room set's chairs, which cover 11 % of the pixels; a floor point keeps its colour
 from view to view whatever its texture, so the product puts 36 % there (mix 0.5, 60 validation
-scenes; `python experiments/ray_foreground_share.py --config=configs/room_chair.py:fast`). It
+scenes; `python experiments/ray_foreground_share.py --config=configs/room_chair.py:scene`). It
 needs a floor at z = 0 (the uORF-style and embedded sets) and two or more views per scene.
 
 Stages (`scene_stages`, `ray_stages`: ((start_step, value), …), sorted by start step): from each
