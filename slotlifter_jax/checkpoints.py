@@ -37,6 +37,13 @@ NOT_ARCHITECTURE = ("model.dtype", "model.slot_iters", "model.fold_products")
 # ...and these fields of other sections, because the weights are tied to them: a model trained with
 # positions in the source view's azimuth frame renders another frame's positions wrongly.
 ALSO_ARCHITECTURE = ("data.frame",)
+# Probe switches retired from the code, with the value that meant "off" (None: the field only
+# qualified a switch of this table, so any value is off). A saved run with every one of them off
+# trained what today's code trains and is read without them; a run that had one on is refused.
+# What they showed: experiments/journal/2026-12.md, "Retired switches".
+RETIRED = {"model.slot_position_embedding": False, "model.locality_floor": False,
+           "model.locality_floor_z": None, "model.locality_attention": False,
+           "train.locality_attention_start": None, "train.slot_attention_lr_scale_steps": 0}
 
 
 class CheckpointMismatchError(ValueError):
@@ -193,7 +200,10 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
   """
   if saved is None:
     return
-  saved = with_base_defaults(saved)
+  try:
+    saved = with_base_defaults(saved)
+  except CheckpointMismatchError as e:
+    raise CheckpointMismatchError(f"{where}: {e}") from None
   current = with_base_defaults(json.loads(config.to_json_best_effort()))
   fields = sorted({f"{section}.{k}" for section in ARCHITECTURE_FIELDS
                    for cfg in (saved, current) for k in cfg.get(section, {})}
@@ -225,10 +235,34 @@ def check_compatible(config: ml_collections.ConfigDict, saved: dict | None, wher
         + "\n  ".join(diffs))
 
 
+def without_retired(cfg: dict) -> dict:
+  """`cfg` (a config as JSON) without the `RETIRED` fields; raises CheckpointMismatchError, naming
+  the field, when one of them was on."""
+  out = {}
+  for section, values in cfg.items():
+    if not isinstance(values, dict):
+      out[section] = values
+      continue
+    kept = {}
+    for key, value in values.items():
+      field = f"{section}.{key}"
+      if field not in RETIRED:
+        kept[key] = value
+      elif RETIRED[field] is not None and _normalise(value) != RETIRED[field]:
+        raise CheckpointMismatchError(
+            f"the run was made with {field}={value!r}, a switch retired from the code "
+            f"(experiments/journal/2026-12.md, \"Retired switches\"); evaluate or resume it with "
+            f"a commit from before its retirement")
+    out[section] = kept
+  return out
+
+
 def with_base_defaults(cfg: dict) -> dict:
   """`cfg` (a config as JSON) with every field it lacks set to `defaults.base_config()`'s value:
-  a run saved before a field was added trained with the behaviour the field defaults to."""
+  a run saved before a field was added trained with the behaviour the field defaults to. Retired
+  switches are dropped (`without_retired`), or refused when they were on."""
   from slotlifter_jax import defaults
+  cfg = without_retired(cfg)
   base = json.loads(defaults.base_config().to_json_best_effort())
   return {k: dict(base[k], **v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
           for k, v in dict(base, **cfg).items()}

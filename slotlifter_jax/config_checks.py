@@ -100,10 +100,6 @@ def rates_problem(train) -> Optional[str]:
   scale = float(train.get("slot_attention_lr_scale", 1.0))
   if not scale >= 0.0:  # also NaN: a negative rate would climb the loss
     return f"train.slot_attention_lr_scale={scale} must be ≥ 0"
-  scale_steps = train.get("slot_attention_lr_scale_steps", 0)
-  if isinstance(scale_steps, bool) or not isinstance(scale_steps, int) or scale_steps < 0:
-    return (f"train.slot_attention_lr_scale_steps={scale_steps!r} must be a whole number of "
-            "steps ≥ 0 (0: the scale holds throughout)")
   return None
 
 

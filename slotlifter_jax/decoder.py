@@ -117,18 +117,13 @@ def dot_product_attention(*, q: jax.Array, k: jax.Array, v: jax.Array) -> jax.Ar
   return jnp.einsum("...htl,...lhd->...thd", attn.astype(v.dtype), v)  # [..., T, H, dv]
 
 
-def locality_mask(*, logits: jax.Array, points: jax.Array, box: float, enabled,
-                  floor_z: Optional[float] = None) -> jax.Array:
+def locality_mask(*, logits: jax.Array, points: jax.Array, box: float, enabled) -> jax.Array:
   """Locality constraint (docs/method.md §1.4): outside the box only s_∅ and slot 1 take a point.
 
   logits [..., K+1], points [..., 3] in the normalised scene frame, `enabled` a (traced) bool.
   Where enabled and any |coordinate| > box, logits of slot indices ≥ 2 become MASKED_LOGIT.
-  floor_z (not in the paper): points with z < floor_z count as outside too, so the box's lower
-  face is the ground plane and slot 1 is the only real slot that can hold the floor.
   """
   outside = jnp.any(jnp.abs(points) > box, axis=-1, keepdims=True)  # [..., 1]
-  if floor_z is not None:
-    outside = jnp.logical_or(outside, points[..., 2:3] < floor_z)
   maskable = jnp.arange(logits.shape[-1]) >= 2  # [K+1]
   masked = jnp.logical_and(jnp.logical_and(enabled, outside), maskable)  # [..., K+1]
   return jnp.where(masked, jnp.asarray(MASKED_LOGIT, logits.dtype), logits)
@@ -338,7 +333,6 @@ class SlotDecoder(nn.Module):
   max_dropout: float = 0.2
   remat_scan: bool = False
   locality_box: float = 0.64
-  locality_floor_z: Optional[float] = None  # see `locality_mask`; None: the paper's box
   density_log_init: float = 0.0  # initial s_σ (official: 0)
   density_mode: str = "slot"  # "slot" | "mlp" (see the class docstring)
   fold_products: bool = False  # the products of `folded.py` (module docstring)
@@ -362,7 +356,7 @@ class SlotDecoder(nn.Module):
         name="transformer")(point_features, slots_all, train=train)
 
     mask = lambda a: locality_mask(logits=a, points=points, box=self.locality_box,
-                                   enabled=locality, floor_z=self.locality_floor_z)
+                                   enabled=locality)
     if self.fold_products:
       # The same A and F_s with the per-point Linears folded into per-scene ones.
       linear = lambda width, name: LinearParams(width, xavier(), name=name)

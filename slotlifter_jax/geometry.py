@@ -219,28 +219,6 @@ def slab_interval(*, origins: jax.Array, directions: jax.Array, near, far, z_min
   return jnp.where(miss, near, lo), jnp.where(miss, far, hi)
 
 
-def ray_misses_box(*, origins: jax.Array, directions: jax.Array, near, far,
-                   half_size: float) -> jax.Array:
-  """Whether each ray's segment [near, far] stays outside the cube |x|, |y|, |z| ≤ half_size.
-
-  The slab test: per axis the segment is inside the slab for t in [t_lo, t_hi]; it meets the cube
-  iff the intersection of the three intervals and [near, far] is not empty. Every point sampled on
-  such a ray lies outside the locality box, so the locality constraint gives all of it to slot 1.
-
-  Args:
-    origins, directions: [..., 3] rays (directions need not be unit; t is in their units).
-    near, far: scalars or [...].
-    half_size: the cube's half extent (the locality box, docs/method.md §1.4).
-
-  Returns:
-    [...] bool, True where no point of the segment lies in the closed cube.
-  """
-  t_lo, t_hi = _slab_crossing(origins, directions, lower=-half_size, upper=half_size)  # [..., 3]
-  lo = jnp.maximum(jnp.max(t_lo, axis=-1), near)
-  hi = jnp.minimum(jnp.min(t_hi, axis=-1), far)
-  return hi < lo
-
-
 def sample_pdf(*, bins: jax.Array, weights: jax.Array, num_samples: int,
                key: Optional[jax.Array] = None) -> jax.Array:
   """Inverse-cdf sampling of a piecewise-constant pdf (NeRF hierarchical, docs/method.md §1.5).

@@ -75,7 +75,7 @@ from slotlifter_jax import geometry
 from slotlifter_jax import lifting
 from slotlifter_jax.encoder import ResUNet
 from slotlifter_jax.rendering import volume
-from slotlifter_jax.slot_attention import SlotAttention, position_grid
+from slotlifter_jax.slot_attention import SlotAttention
 
 # Top-level submodules whose parameters follow the "head" learning-rate schedule (docs/method.md §2:
 # colour MLP, lifting Linear, positional Linear); everything else is "backbone". Prefixes, so the
@@ -189,9 +189,6 @@ class SlotLifter(nn.Module):
   slot_mlp_dim: int = 1024
   slot_eps: float = 1.0
   slot_drop_path: float = 0.2
-  # Not the paper's: a learned embedding of each feature cell's (x, y) added to the slot
-  # attention's input only (Locatello et al. 2020's soft position embedding); see defaults.py.
-  slot_position_embedding: bool = False
   # Point decoder (§1.3, §1.4).
   point_dim: int = 64
   num_blocks: int = 4
@@ -204,12 +201,6 @@ class SlotLifter(nn.Module):
   colour_layers: int = 4
   colour_range: str = "unit"
   locality_box: float = 0.64
-  # Not the paper's: None, or the height below which points also count as outside the locality
-  # box (its lower face on the ground plane; decoder.locality_mask, defaults.py).
-  locality_floor_z: Optional[float] = None
-  # Not the paper's: while the locality constraint holds, source-view feature cells whose ray
-  # never enters the locality box go to slot attention's first slot only (`background_cells`).
-  locality_attention: bool = False
   remat_scan: bool = False
   # The decoder's cross-attention and mapping, and E_p's direction half, computed in a folded
   # order: the same parameters and function, fewer per-point products, other rounding
@@ -242,8 +233,6 @@ class SlotLifter(nn.Module):
         num_slots=self.num_slots, slot_dim=self.slot_dim, num_iters=self.slot_iters,
         mlp_dim=self.slot_mlp_dim, eps=self.slot_eps, drop_path_rate=self.slot_drop_path,
         dtype=self.dtype)
-    if self.slot_position_embedding:
-      self.slot_pos_proj = nn.Dense(self.feature_dim, dtype=self.dtype, name="slot_pos_proj")
     # xavier-uniform kernels, zero biases: the official `linear` helper.
     dense = lambda name: nn.Dense(self.point_dim, kernel_init=nn.initializers.xavier_uniform(),
                                   dtype=self.dtype, name=name)
@@ -260,7 +249,6 @@ class SlotLifter(nn.Module):
             width=self.point_dim, num_blocks=self.num_blocks, num_heads=self.num_heads,
             self_attn_dim=self.self_attn_dim, ffn_dim=self.ffn_dim, max_dropout=self.max_dropout,
             remat_scan=self.remat_scan, locality_box=self.locality_box,
-            locality_floor_z=self.locality_floor_z,
             density_log_init=self.density_log_init, density_mode=self.density_mode,
             fold_products=self.fold_products, dtype=self.dtype, name=f"allocation{p}")
         for p in passes]
@@ -270,34 +258,11 @@ class SlotLifter(nn.Module):
                               name=f"colour_mlp{p}")
         for p in passes]
 
-  def background_cells(self, *, source_cam_to_world: jax.Array, source_intrinsics: jax.Array,
-                       image_size: tuple[int, int], feature_size: tuple[int, int]) -> jax.Array:
-    """[B, V, h, w] bool: feature cells whose ray crosses no part of the locality box between the
-    ray's near and far bounds (`ray_interval`).
-
-    Every point rendered along such a ray lies outside the box, so while the locality constraint
-    holds the decoder gives all of it to slot 1 (or to s_∅): the cell's segment can only be slot 1.
-    `locality_attention` tells slot attention the same about the source view. A cell (i, j) is the
-    pixel (j·(W−1)/(w−1), i·(H−1)/(h−1)), the align-corners convention of feature lifting.
-    """
-    (height, width), (h, w) = image_size, feature_size
-    v_pix, u_pix = jnp.meshgrid(jnp.linspace(0.0, height - 1.0, h),
-                                jnp.linspace(0.0, width - 1.0, w), indexing="ij")
-    rays = geometry.pixel_rays(cam_to_world=source_cam_to_world[:, :, None, None],
-                               intrinsics=source_intrinsics[:, :, None, None],
-                               pix=jnp.stack([u_pix, v_pix], axis=-1))  # [B, V, h, w, 3] each
-    near, far = self.ray_interval(rays.origins, rays.directions)
-    return geometry.ray_misses_box(origins=rays.origins, directions=rays.directions, near=near,
-                                   far=far, half_size=self.locality_box)
-
   def encode(self, *, source_images: jax.Array, source_cam_to_world: jax.Array,
-             source_intrinsics: jax.Array, slot_noise_sigma=0.0, locality=False,
-             train: bool) -> Encoded:
+             source_intrinsics: jax.Array, slot_noise_sigma=0.0, train: bool) -> Encoded:
     """Source views [B, V, H, W, 3] (as given: the caller maps DTU images to [−1, 1]) → slots.
 
     slot_noise_sigma: the (traced) σ of the slot initialisation noise; only used when `train`.
-    locality: (traced) bool, whether the locality constraint holds; it reaches slot attention
-    only with `locality_attention`.
     """
     b, v, height, width, _ = source_images.shape
     x = encoder_input(images=source_images, cam_to_world=source_cam_to_world,
@@ -306,20 +271,8 @@ class SlotLifter(nn.Module):
     feats = self.encoder(x.reshape((b * v, height, width, x.shape[-1]))).astype(
         jnp.float32)  # [B·V, h, w, D]
     feats = feats.reshape((b, v) + feats.shape[1:])  # [B, V, h, w, D]
-    slot_inputs = feats
-    if self.slot_position_embedding:
-      # Where a cell lies in its view, so slot attention can tell apart two objects whose
-      # features match (two red objects); the lifted features stay as the paper's.
-      slot_inputs = feats + self.slot_pos_proj(position_grid(*feats.shape[2:4]))  # [B, V, h, w, D]
-    flat = slot_inputs.reshape(b, -1, feats.shape[-1])  # [B, V·h·w, D]: all views (§1.2)
-    background_only = None
-    if self.locality_attention:
-      cells = self.background_cells(source_cam_to_world=source_cam_to_world,
-                                    source_intrinsics=source_intrinsics,
-                                    image_size=(height, width), feature_size=feats.shape[2:4])
-      background_only = jnp.logical_and(locality, cells.reshape(b, -1))  # [B, V·h·w]
-    result = self.slot_attention(flat, noise_sigma=slot_noise_sigma, train=train,
-                                 background_only=background_only)
+    flat = feats.reshape(b, -1, feats.shape[-1])  # [B, V·h·w, D]: all views (§1.2)
+    result = self.slot_attention(flat, noise_sigma=slot_noise_sigma, train=train)
     return Encoded(features=feats, slots=result.slots, slot_attn=result.attn)
 
   def _render_pass(self, index: int, encoded: Encoded, *, source_images, source_cam_to_world,
@@ -432,19 +385,12 @@ class SlotLifter(nn.Module):
 
   def __call__(self, *, source_images: jax.Array, source_cam_to_world: jax.Array,
                source_intrinsics: jax.Array, ray_origins: jax.Array, ray_directions: jax.Array,
-               slot_noise_sigma=0.0, keep_ratio=1.0, locality=False, attention_locality=None,
+               slot_noise_sigma=0.0, keep_ratio=1.0, locality=False,
                train: bool) -> ModelOutput:
-    """encode + render_rays on the same scenes (the training forward pass).
-
-    attention_locality: (traced) bool for slot attention's side of the locality constraint
-    (`locality_attention`); None: the same as `locality`.
-    """
+    """encode + render_rays on the same scenes (the training forward pass)."""
     sources = dict(source_images=source_images, source_cam_to_world=source_cam_to_world,
                    source_intrinsics=source_intrinsics)
-    if attention_locality is None:
-      attention_locality = locality
-    encoded = self.encode(**sources, slot_noise_sigma=slot_noise_sigma,
-                          locality=attention_locality, train=train)
+    encoded = self.encode(**sources, slot_noise_sigma=slot_noise_sigma, train=train)
     out = self.render_rays(encoded, **sources, ray_origins=ray_origins,
                            ray_directions=ray_directions, keep_ratio=keep_ratio,
                            locality=locality, train=train)
@@ -466,7 +412,6 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       slot_mlp_dim=int(m.slot_mlp_dim),
       slot_eps=float(m.slot_eps),
       slot_drop_path=float(m.slot_drop_path),
-      slot_position_embedding=bool(m.get("slot_position_embedding", False)),
       point_dim=int(m.point_dim),
       num_blocks=int(m.num_blocks),
       num_heads=int(m.num_heads),
@@ -478,8 +423,6 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       colour_layers=int(m.colour_layers),
       colour_range=str(m.colour_range),
       locality_box=float(m.locality_box),
-      locality_floor_z=float(m.locality_floor_z) if m.get("locality_floor", False) else None,
-      locality_attention=bool(m.get("locality_attention", False)),
       remat_scan=bool(m.remat_scan),
       fold_products=bool(m.get("fold_products", False)),
       density_scale=float(m.density_scale),

@@ -61,13 +61,8 @@ def has_slot_attention_group(train_config) -> bool:
 
 
 def slot_attention_lr(t, train_config):
-  """Slot attention's learning rate at step t: the backbone's times `slot_attention_lr_scale` for
-  the first `slot_attention_lr_scale_steps` steps (0: throughout), then the backbone's."""
-  scale = train_config.get("slot_attention_lr_scale", 1.0)
-  steps = train_config.get("slot_attention_lr_scale_steps", 0)
-  if steps > 0:
-    scale = jnp.where(jnp.asarray(t) < steps, scale, 1.0)
-  return backbone_lr(t, train_config) * scale
+  """Slot attention's learning rate at step t: the backbone's times `slot_attention_lr_scale`."""
+  return backbone_lr(t, train_config) * train_config.get("slot_attention_lr_scale", 1.0)
 
 
 def _cosine_to_zero(t, steps: int):
@@ -116,14 +111,6 @@ def locality_on(t, *, steps: int):
   return jnp.asarray(t) < steps
 
 
-def attention_locality_on(t, *, locality_steps: int, start: int):
-  """Whether slot attention applies the locality constraint (`model.locality_attention`): only
-  from step `start` on, while the constraint holds, so that early on, when the decoder renders
-  everything from one slot, that slot is not also handed the background cells."""
-  t = jnp.asarray(t)
-  return jnp.logical_and(t >= start, t < locality_steps)
-
-
 def all_schedules(t, train_config) -> dict:
   """The schedule values for step t, as reported in the training metrics."""
   c = train_config
@@ -138,6 +125,4 @@ def all_schedules(t, train_config) -> dict:
                             mask_min_release_steps=c.get("mask_min_release_steps", 0)),
       slot_noise_sigma=slot_noise_sigma(t, anneal_steps=c.noise_anneal_steps),
       locality=locality_on(t, steps=c.locality_steps),
-      attention_locality=attention_locality_on(t, locality_steps=c.locality_steps,
-                                               start=c.get("locality_attention_start", 0)),
   )

@@ -36,7 +36,6 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from slotlifter_jax.decoder import MASKED_LOGIT
 
 # PyTorch's LayerNorm default, kept to match the official model.
 LAYER_NORM_EPS = 1e-5
@@ -77,18 +76,6 @@ def slot_competition(*, logits: jax.Array, values: jax.Array, eps: float) -> Com
   return Competition(attn=attn, updates=updates)
 
 
-def background_only_logits(logits: jax.Array, background_only: jax.Array) -> jax.Array:
-  """Inputs marked `background_only` [B, N] can go to the first slot only: logits [B, K, N] of the
-  other slots become MASKED_LOGIT there, so the softmax over slots gives them exactly 0.
-
-  The first slot is the decoder's slot 1 (index 0 there is the empty slot s_∅), the one the
-  locality constraint keeps for points outside the box (docs/method.md §1.4).
-  """
-  masked = jnp.logical_and(background_only[:, None, :],
-                           (jnp.arange(logits.shape[1]) >= 1)[None, :, None])  # [B, K, N]
-  return jnp.where(masked, jnp.asarray(MASKED_LOGIT, logits.dtype), logits)
-
-
 def drop_path(x: jax.Array, *, rate: float, key: jax.Array) -> jax.Array:
   """Stochastic depth (timm DropPath): zero a whole sample's residual with probability `rate`.
 
@@ -124,14 +111,6 @@ def _gate_slice_init(stacked_key: Optional[jax.Array], gate: int, num_gates: int
     stacked = nn.initializers.orthogonal()(draw_key, (fan_in, num_gates * width), dtype)
     return stacked[:, gate * width:(gate + 1) * width]
   return init
-
-
-def position_grid(height: int, width: int) -> jax.Array:
-  """[h, w, 4] per feature cell: (x, y, 1 − x, 1 − y), x and y from 0 at the first column/row to
-  1 at the last (the grid of Locatello et al. 2020's soft position embedding)."""
-  y = jnp.linspace(0.0, 1.0, height, dtype=jnp.float32)[:, None] * jnp.ones((1, width))
-  x = jnp.ones((height, 1)) * jnp.linspace(0.0, 1.0, width, dtype=jnp.float32)[None, :]
-  return jnp.stack([x, y, 1.0 - x, 1.0 - y], axis=-1)
 
 
 class SlotGRU(nn.Module):
@@ -219,15 +198,12 @@ class SlotAttention(nn.Module):
     return self.project_k(x), self.project_v(x)
 
   def update(self, slots: jax.Array, keys: jax.Array, values: jax.Array, *,
-             train: bool, background_only: Optional[jax.Array] = None) -> Iteration:
-    """One iteration of slot attention from slots [B, K, Ds] given keys and values [B, N, Ds]
-    (`background_only`: see `__call__`)."""
+             train: bool) -> Iteration:
+    """One iteration of slot attention from slots [B, K, Ds] given keys and values [B, N, Ds]."""
     q = self.project_q(self.norm_slots(slots))  # [B, K, Ds]
     # The product runs in the computation dtype; scaled and softmaxed in float32.
     logits = jnp.einsum("bkd,bnd->bkn", q, keys).astype(jnp.float32) / math.sqrt(
         self.slot_dim)  # [B, K, N]
-    if background_only is not None:
-      logits = background_only_logits(logits, background_only)
     comp = slot_competition(logits=logits, values=values, eps=self.eps)
     new_slots, _ = self.gru(slots, comp.updates)  # carry = previous slots, input = updates
     residual = self.mlp_out(nn.relu(self.mlp_in(self.norm_mlp(new_slots))))
@@ -235,18 +211,15 @@ class SlotAttention(nn.Module):
       residual = drop_path(residual, rate=self.drop_path_rate, key=self.make_rng("dropout"))
     return Iteration(slots=new_slots + residual, attn=comp.attn)
 
-  def __call__(self, inputs: jax.Array, *, noise_sigma=0.0, train: bool = False,
-               background_only: Optional[jax.Array] = None) -> SlotAttentionResult:
-    """inputs [B, N, D]; noise_sigma a (traced) scalar used only when `train`.
-
-    background_only: None, or [B, N] bool, inputs only the first slot may take in every
-    iteration (`background_only_logits`; the model's `locality_attention`)."""
+  def __call__(self, inputs: jax.Array, *, noise_sigma=0.0,
+               train: bool = False) -> SlotAttentionResult:
+    """inputs [B, N, D]; noise_sigma a (traced) scalar used only when `train`."""
     init = self.initial_slots(inputs.shape[0], noise_sigma=noise_sigma, train=train)
     keys, values = self.keys_values(inputs)
     slots = init
     attn: Optional[jax.Array] = None
     for i in range(self.num_iters):
-      step = self.update(slots, keys, values, train=train, background_only=background_only)
+      step = self.update(slots, keys, values, train=train)
       slots, attn = step.slots, step.attn
       if i < self.num_iters - 1:
         # Bi-level gradient. `init − stop_gradient(init)` is zero in value and passes the gradient

@@ -196,8 +196,7 @@ def make_grad_fn(model, config) -> Callable:
     out = model.apply(
         {"params": params}, **model_inputs(batch, signed_colour=signed),
         slot_noise_sigma=sched["slot_noise_sigma"], keep_ratio=sched["keep_ratio"],
-        locality=sched["locality"], attention_locality=sched["attention_locality"], train=True,
-        rngs=rngs)
+        locality=sched["locality"], train=True, rngs=rngs)
     target = batch["target_rgb"]  # [B, R, 3] in [0, 1]
     coarse = to_unit_colour(out.render.coarse.colour, signed_colour=signed)
     mse_coarse = jnp.mean((coarse - target) ** 2)

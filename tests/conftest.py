@@ -62,7 +62,7 @@ HEAVIEST_FIRST = (
 # there) and, for files it predates, from what they build. The full suite (`pytest -q`, CI) runs
 # them all.
 SLOW_FILES = frozenset(HEAVIEST_FIRST) | {
-    "test_notebook.py", "test_generator.py", "test_locality_attention.py", "test_encoder.py",
+    "test_notebook.py", "test_generator.py", "test_encoder.py",
     "test_programs.py", "test_slot_attention.py", "test_study_workdirs.py",
     "test_suite_accounting.py", "test_suite_order.py", "test_ab_step.py",
 }

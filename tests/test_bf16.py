@@ -313,14 +313,13 @@ def test_bf16_training_loss_tracks_float32(grad_fns, setup):
 
 
 def test_bf16_traces_with_every_model_switch():
-  """The other layouts (fine pass, decoder blocks under nn.scan + remat, MLP density, slot
-  position embedding, two source views) trace in bf16 (nn.scan needs its carry h to keep its
+  """The other layouts (fine pass, decoder blocks under nn.scan + remat, MLP density, two
+  source views) trace in bf16 (nn.scan needs its carry h to keep its
   dtype, float32) and give float32 renders and gradients; shapes only, nothing compiled."""
   config = _config("bfloat16")
   config.render.num_fine_samples = 5
   config.model.remat_scan = True
   config.model.density_mode = "mlp"
-  config.model.slot_position_embedding = True
   config.data.num_source_views = 2
   model = model_lib.build_model(config)
   batch = fake_batch(config)

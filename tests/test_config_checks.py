@@ -54,7 +54,6 @@ def smoke(**overrides):
     dict(train__lr_cooldown_steps=6),  # = num_steps
     dict(train__lr_cooldown_final=0.0), dict(train__lr_cooldown_final=1.0),
     dict(train__slot_attention_lr_scale=0.0),
-    dict(train__slot_attention_lr_scale=2.0, train__slot_attention_lr_scale_steps=4),
     dict(train__restart_check_step=3, train__restarts=1),  # on eval_every's grid
     dict(train__ema_decay=0.0), dict(train__ema_decay=0.999, train__ema_start_step=0),
     dict(render__supersample=3),
@@ -75,8 +74,6 @@ def test_settings_on_the_allowed_side_pass(overrides):
     (dict(train__lr_cooldown_steps=7), "train.lr_cooldown_steps=7 must lie in [0, train.num_steps=6]"),
     (dict(train__lr_cooldown_final=1.01), "train.lr_cooldown_final=1.01 must lie in [0, 1]"),
     (dict(train__slot_attention_lr_scale=float("nan")), "train.slot_attention_lr_scale=nan"),
-    (dict(train__slot_attention_lr_scale_steps=-1),
-     "train.slot_attention_lr_scale_steps=-1 must be a whole number of steps ≥ 0"),
     (dict(train__select_by="fg_ari"), "train.select_by must be one of"),
     (dict(train__restart_check_step=4), "train.restart_check_step=4 must be 0 (no check) or a "
                                         "multiple of train.eval_every=3"),

@@ -80,36 +80,6 @@ def test_locality_mask():
   assert np.all(np.isfinite(np.asarray(g)))
 
 
-def test_locality_floor_makes_the_ground_plane_the_box_lower_face():
-  rng = np.random.default_rng(5)
-  logits = jnp.asarray(rng.normal(size=(5, K + 1)).astype(np.float32) * 5)
-  # Inside the paper's box all: below the floor height, on it, above it, an object's top, and
-  # one point that the paper's box already excludes.
-  points = jnp.asarray([[0.1, 0.2, -0.03], [0.0, 0.0, 0.01], [0.3, -0.1, 0.005],
-                        [-0.2, 0.4, 0.15], [0.0, 0.9, 0.1]])
-  masked = np.asarray(dec.locality_mask(logits=logits, points=points, box=0.64,
-                                        enabled=jnp.asarray(True), floor_z=0.01))
-  outside = np.array([True, False, True, False, True])  # z < 0.01, or |y| > 0.64
-  assert np.all(masked[outside][:, 2:] == dec.MASKED_LOGIT)
-  np.testing.assert_array_equal(masked[outside][:, :2], np.asarray(logits)[outside][:, :2])
-  np.testing.assert_array_equal(masked[~outside], np.asarray(logits)[~outside])
-  # Without floor_z only the last point is outside; switched off, nothing is.
-  paper = np.asarray(dec.locality_mask(logits=logits, points=points, box=0.64, enabled=True))
-  np.testing.assert_array_equal(paper[:4], np.asarray(logits)[:4])
-  off = dec.locality_mask(logits=logits, points=points, box=0.64, enabled=jnp.asarray(False),
-                          floor_z=0.01)
-  np.testing.assert_array_equal(off, logits)
-
-
-def test_locality_floor_reaches_the_decoder_from_the_config():
-  from slotlifter_jax import defaults, model as model_lib
-  config = defaults.base_config()
-  assert model_lib.build_model(config).locality_floor_z is None  # the paper's box by default
-  config.model.locality_floor = True
-  config.model.locality_floor_z = 0.02
-  assert model_lib.build_model(config).locality_floor_z == 0.02
-
-
 def test_slot_density_excludes_empty_slot():
   rng = np.random.default_rng(3)
   logits = rng.normal(size=(6, K + 1)).astype(np.float32) * 3

@@ -199,60 +199,18 @@ def test_z_bounds_that_hold_every_ray_render_as_the_unbounded_grid():
   np.testing.assert_array_equal(inside[hits], True)
 
 
-def test_slot_position_embedding_adds_a_linear_map_of_the_cell_grid_to_the_slot_inputs():
-  """The option adds Dense((x, y, 1−x, 1−y)) to slot attention's input only: with that Dense
-  zeroed the slots equal the paper model's (same other weights); with it they differ."""
-  from slotlifter_jax.slot_attention import position_grid
-  grid = np.asarray(position_grid(2, 3))  # hand-computed corners and middle
-  np.testing.assert_allclose(grid[0, 0], [0, 0, 1, 1])
-  np.testing.assert_allclose(grid[1, 2], [1, 1, 0, 0])
-  np.testing.assert_allclose(grid[0, 1], [0.5, 0, 0.5, 1])
-
-  inputs = tm.make_inputs(1)
-  sources = tm.sources(inputs)
-  paper, with_pos = tm.tiny(), tm.tiny(slot_position_embedding=True)
-  variables = tm.init(with_pos, inputs)
-  proj = variables["params"]["slot_pos_proj"]
-  assert proj["kernel"].shape == (4, D) and proj["bias"].shape == (D,)
-  without = {"params": {k: v for k, v in variables["params"].items() if k != "slot_pos_proj"}}
-  zeroed = {"params": {**variables["params"],
-                       "slot_pos_proj": jax.tree.map(jnp.zeros_like, proj)}}
-  # XLA's default fusion emitters, not the suite's loop emitters (tests/conftest.py): with those
-  # the two programs' encoders round differently in the last bits.
-  default_jit = functools.partial(jax.jit, compiler_options={
-      "xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": True})
-  encode = lambda m, v: default_jit(lambda: m.apply(v, **sources, train=False, method=m.encode))()
-  ref = encode(paper, without)
-  chex.assert_trees_all_close(encode(with_pos, zeroed).slots, ref.slots, atol=1e-6)
-  moved = encode(with_pos, variables)
-  assert float(jnp.max(jnp.abs(moved.slots - ref.slots))) > 1e-3
-  # The lifted features are the encoder's, untouched by the embedding.
-  chex.assert_trees_all_close(moved.features, ref.features, atol=0)
-
-
-def test_encoder_output_stride_2_gives_slot_attention_and_the_locality_box_the_finer_grid():
+def test_encoder_output_stride_2_gives_slot_attention_the_finer_grid():
   """model.encoder_output_stride = 2: features on ceil(H/2)×ceil(W/2) cells, slot attention over
-  all of them, the background cells of the locality box on the same grid (their centres as in
-  `background_cells`), and source-pixel labels at full size."""
+  all of them, and source-pixel labels at full size."""
   from slotlifter_jax.rendering import views
-  model = tm.tiny(encoder_output_stride=2, locality_attention=True)
+  model = tm.tiny(encoder_output_stride=2)
   inputs = tm.make_inputs(1)
   sources = tm.sources(inputs)
   variables = tm.init(model, inputs)
-  encoded = jit(lambda: model.apply(variables, **sources, locality=True, train=False,
-                                    method=model.encode))()
+  encoded = jit(lambda: model.apply(variables, **sources, train=False, method=model.encode))()
   h, w = -(-H // 2), -(-W // 2)
   chex.assert_shape(encoded.features, (B, 1, h, w, D))
   chex.assert_shape(encoded.slot_attn, (B, K, h * w))
   np.testing.assert_allclose(encoded.slot_attn.sum(axis=1), 1.0, atol=1e-5)
-  cells = model.apply(variables, source_cam_to_world=sources["source_cam_to_world"],
-                      source_intrinsics=sources["source_intrinsics"], image_size=(H, W),
-                      feature_size=(h, w), method=model.background_cells)
-  chex.assert_shape(cells, (B, 1, h, w))
-  # While locality holds, a background-only cell's attention goes to the first slot alone.
-  background = np.asarray(cells).reshape(B, -1)
-  attn = np.asarray(encoded.slot_attn)
-  assert background.any()
-  np.testing.assert_allclose(attn[:, 0][background], 1.0, atol=1e-5)
   labels = views.source_attention_labels(encoded, (H, W))
   assert labels.shape == (1, H, W)

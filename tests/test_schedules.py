@@ -77,8 +77,7 @@ def test_endpoints_and_locality():
 def test_all_schedules_reports_every_value():
   c = defaults.base_config().train
   s = schedules.all_schedules(12_345, c)
-  assert set(s) == {"lr_backbone", "lr_head", "keep_ratio", "slot_noise_sigma", "locality",
-                    "attention_locality"}
+  assert set(s) == {"lr_backbone", "lr_head", "keep_ratio", "slot_noise_sigma", "locality"}
   np.testing.assert_allclose(s["lr_head"], 5e-5 * (0.02 + 0.98 * 0.5 ** (12_345 / 50_000)),
                              rtol=1e-5)
 
@@ -143,40 +142,6 @@ def test_slot_attention_follows_the_backbone_rate_times_its_scale():
   c.slot_attention_lr_scale = 1.0  # the paper's: one backbone group, nothing extra logged
   assert "lr_slot_attention" not in schedules.all_schedules(0, c)
   assert set(jax.tree.leaves(train_step.param_groups(params))) == {"head", "backbone"}
-
-
-def test_slot_attentions_scale_holds_for_its_steps_then_it_follows_the_backbone():
-  """With slot_attention_lr_scale_steps = N the rate is the backbone's times the scale before step
-  N and the backbone's from N on, at every step (the backbone's own rate is untouched), and the
-  optimiser applies that rate: one Lion step at t = N equals optax's Lion at the backbone's rate."""
-  import jax.numpy as jnp
-  import optax
-  from slotlifter_jax import train_step
-
-  c = defaults.base_config().train
-  c.warmup_steps, c.decay_steps = 3, 7
-  c.slot_attention_lr_scale, c.slot_attention_lr_scale_steps = 2.0, 5
-  for t in range(9):
-    backbone = float(schedules.backbone_lr(t, c))
-    expected = 2.0 * backbone if t < 5 else backbone
-    assert float(schedules.slot_attention_lr(t, c)) == pytest.approx(expected, rel=1e-6)
-    assert schedules.all_schedules(t, c)["lr_slot_attention"] == pytest.approx(expected, rel=1e-6)
-  params = {"encoder": {"w": -jnp.arange(3.0)}, "slot_attention": {"w": jnp.array([0.5, -2.0])}}
-  grads = {"encoder": {"w": jnp.array([4.0, -1, 2])}, "slot_attention": {"w": jnp.array([-1.0, 3.0])}}
-  tx = train_step.make_optimizer(c)
-  state = tx.init(params)
-  for _ in range(5):  # the optimiser's own count reaches 5, the first step past the scale
-    _, state = tx.update(grads, state, params)
-  got, _ = tx.update(grads, state, params)
-  c.slot_attention_lr_scale_steps = 0
-  ref = train_step.make_optimizer(c)  # the same history, the scale throughout
-  ref_state = ref.init(params)
-  for _ in range(5):
-    _, ref_state = ref.update(grads, ref_state, params)
-  scaled, _ = ref.update(grads, ref_state, params)
-  np.testing.assert_allclose(got["slot_attention"]["w"], 0.5 * scaled["slot_attention"]["w"],
-                             rtol=1e-6)
-  np.testing.assert_allclose(got["encoder"]["w"], scaled["encoder"]["w"], rtol=1e-6)
 
 
 def test_a_resume_that_would_drop_or_add_slot_attentions_group_refuses_naming_the_field():
