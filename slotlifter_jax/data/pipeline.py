@@ -48,8 +48,9 @@ per scene; before the first stage, from all scenes and with `rays_per_scene` ray
 depends on the stage it falls in only, so until a stage starts every batch equals that of a sampler
 without it, and a run may be resumed with a stage added after its last step. They exist to grow the
 training set and the ray batch once slot attention's grouping has settled: from step 0, more
-scenes or rays delay the grouping the embedded runs rely on (experiments/README.md, "Emergence",
-ninth and tenth rounds).
+scenes or rays delay the grouping the embedded runs rely on (docs/fast_model.md §2;
+experiments/journal/2026-11.md, "more training scenes against the PSNR gap" and "more scenes and
+rays only after the grouping has settled").
 
 Every random choice of step t comes from `np.random.default_rng([seed, t])`, so batch t is the same
 in a resumed run, whatever came before. `prefetch` builds batches on a background thread.
