@@ -24,7 +24,8 @@ MAIN = re.compile(r"\.venv/bin/python -m slotlifter_jax\.main ([^\n`]+)")
 # Flags this test passes in each mode (with the README's values, where the README gives them).
 RUN_FLAGS = {"train": {"--config", "--workdir"},
              "eval": {"--config", "--workdir", "--mode"},
-             "render": {"--config", "--workdir", "--mode", "--scenes"}}
+             "render": {"--config", "--workdir", "--mode", "--scenes"},
+             "edit": {"--config", "--workdir", "--mode"}}
 # The multi-process flags: tests/test_distributed.py runs them (and checks the README's use of them).
 DISTRIBUTED_FLAGS = {"--distributed", "--coordinator_address", "--num_processes", "--process_id"}
 
@@ -119,6 +120,10 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
   scenes = next(a.split("=", 1)[1] for a in render if a.startswith("--scenes="))
   for i in scenes.split(","):
     assert os.path.isfile(tmp_path / workdir / "render" / "test" / f"scene_{int(i):04d}_panel.png")
+  out = _run(_readme_command("edit"), tmp_path)
+  with open(tmp_path / workdir / "edit" / "test" / "edit_metrics.json") as f:
+    edits = json.load(f)
+  assert {"remove", "move"} <= set(edits), out[-3000:]
 
 
 # The bad inputs that only the data or the run folder reveals, after JAX has started.
