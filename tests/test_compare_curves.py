@@ -1,4 +1,5 @@
-"""experiments/compare_curves.py through its command line: the tables it prints and its errors."""
+"""slotlifter_jax/tools/compare_curves.py through its command line: the tables it prints and its
+errors."""
 
 import json
 import os
@@ -6,7 +7,7 @@ import subprocess
 import sys
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SCRIPT = os.path.join(REPO, "experiments", "compare_curves.py")
+TOOL = [sys.executable, "-m", "slotlifter_jax.tools.compare_curves"]
 
 
 def _write(path, records):
@@ -16,7 +17,7 @@ def _write(path, records):
 
 
 def _run(*args):
-  return subprocess.run([sys.executable, SCRIPT, *args], capture_output=True, text=True, cwd=REPO)
+  return subprocess.run([*TOOL, *args], capture_output=True, text=True, cwd=REPO)
 
 
 def test_tables_list_each_runs_validations_by_step(tmp_path):

@@ -1,12 +1,10 @@
-"""experiments/early_check.py on hand-written validation logs: it reads validation only."""
+"""slotlifter_jax/tools/early_check.py on hand-written validation logs: it reads validation only."""
 
 import json
-import os
 import subprocess
 import sys
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SCRIPT = os.path.join(REPO, "experiments", "early_check.py")
+TOOL = [sys.executable, "-m", "slotlifter_jax.tools.early_check"]
 
 
 def _write_run(folder, name, val_rows, slots=None):
@@ -24,7 +22,7 @@ def _write_run(folder, name, val_rows, slots=None):
 
 
 def _run(*args):
-  return subprocess.run([sys.executable, SCRIPT, *args], capture_output=True, text=True,
+  return subprocess.run([*TOOL, *args], capture_output=True, text=True,
                         timeout=60)
 
 

@@ -1,4 +1,5 @@
-"""Tests of slotlifter_jax.emergence and experiments/plot_curves.py on hand-written metrics logs.
+"""Tests of slotlifter_jax.emergence and slotlifter_jax/tools/plot_curves.py on hand-written metrics
+logs.
 
 Every expected value below is read off the constructed log (steps, wall_s, time), not computed by
 the code under test.
@@ -16,8 +17,7 @@ import pytest
 
 from slotlifter_jax import emergence
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-PLOT_CURVES = os.path.join(REPO, "experiments", "plot_curves.py")
+PLOT_CURVES = [sys.executable, "-m", "slotlifter_jax.tools.plot_curves"]
 
 
 def _train(step, time, wall_s=None):
@@ -250,7 +250,7 @@ def test_plot_curves_command_line(tmp_path, with_wall):
   rows = LOG if with_wall else [{k: v for k, v in r.items() if k != "wall_s"} for r in LOG]
   _write(tmp_path / "metrics.jsonl", rows)
   env = {**os.environ, "MPLBACKEND": "Agg"}
-  result = subprocess.run([sys.executable, PLOT_CURVES, str(tmp_path)], capture_output=True,
+  result = subprocess.run([*PLOT_CURVES, str(tmp_path)], capture_output=True,
                           text=True, timeout=300, env=env, cwd=str(tmp_path))
   assert result.returncode == 0, result.stderr
   png = tmp_path / "curves.png"
@@ -261,14 +261,14 @@ def test_plot_curves_command_line(tmp_path, with_wall):
   assert ("wall clock: time" in result.stdout) != with_wall
   # a metrics file named directly, with an explicit output
   out = tmp_path / "explicit.png"
-  result = subprocess.run([sys.executable, PLOT_CURVES, str(tmp_path / "metrics.jsonl"), str(out)],
+  result = subprocess.run([*PLOT_CURVES, str(tmp_path / "metrics.jsonl"), str(out)],
                           capture_output=True, text=True, timeout=300, env=env)
   assert result.returncode == 0, result.stderr
   assert out.stat().st_size > 0
 
 
 def test_plot_curves_names_a_missing_log_in_one_line_and_writes_nothing(tmp_path):
-  result = subprocess.run([sys.executable, PLOT_CURVES, str(tmp_path / "no_run")],
+  result = subprocess.run([*PLOT_CURVES, str(tmp_path / "no_run")],
                           capture_output=True, text=True, timeout=300, cwd=str(tmp_path))
   assert result.returncode == 1
   assert result.stderr.strip() == (f"error: {tmp_path / 'no_run'}: neither a metrics .jsonl file "

@@ -1,4 +1,5 @@
-"""experiments/fork_run.py: a run folder forked at a checkpoint resumes into the run it came from."""
+"""slotlifter_jax/tools/fork_run.py: a run folder forked at a checkpoint resumes into the run it
+came from."""
 
 import json
 import os
@@ -10,10 +11,8 @@ import numpy as np
 import pytest
 
 from slotlifter_jax import train
+from slotlifter_jax.tools import fork_run
 from train_helpers import REPO, final_params, load_config, load_config_with
-
-sys.path.insert(0, REPO)
-from experiments import fork_run  # noqa: E402
 
 
 def test_config_at_undoes_later_changes_latest_first():
@@ -39,8 +38,8 @@ def test_jsonl_upto_keeps_records_to_the_step_and_drops_a_cut_line(tmp_path):
 
 
 def _run(*args):
-  return subprocess.run([sys.executable, os.path.join(REPO, "experiments", "fork_run.py"),
-                         *map(str, args)], capture_output=True, text=True, cwd=REPO)
+  return subprocess.run([sys.executable, "-m", "slotlifter_jax.tools.fork_run", *map(str, args)],
+                        capture_output=True, text=True, cwd=REPO)
 
 
 @pytest.mark.slow

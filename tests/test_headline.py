@@ -1,4 +1,4 @@
-"""experiments/headline.py on hand-built run folders."""
+"""slotlifter_jax/tools/headline.py on hand-built run folders."""
 
 import json
 import os
@@ -8,8 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-SCRIPT = os.path.join(REPO, "experiments", "headline.py")
+TOOL = [sys.executable, "-m", "slotlifter_jax.tools.headline"]
 
 
 def _run_folder(root, name, *, seed, fg, nv, psnr, restarted=(), wall_s=600.0, split="test"):
@@ -37,7 +36,7 @@ def test_headline_of_three_seeds_against_numpy(tmp_path):
                       wall_s=3000.0),
           _run_folder(tmp_path, "s2", seed=2, fg=0.40, nv=0.60, psnr=24.0)]
   out = tmp_path / "headline.json"
-  result = subprocess.run([sys.executable, SCRIPT, "--name=room", "--split=test", f"--out={out}",
+  result = subprocess.run([*TOOL, "--name=room", "--split=test", f"--out={out}",
                            *runs], capture_output=True, text=True, timeout=120)
   assert result.returncode == 0, result.stderr
   h = json.loads(out.read_text())
@@ -55,7 +54,7 @@ def test_headline_of_three_seeds_against_numpy(tmp_path):
 def test_a_seed_without_that_evaluation_is_one_line_naming_the_file(tmp_path):
   runs = [_run_folder(tmp_path, "s0", seed=0, fg=0.8, nv=0.8, psnr=25.0, split="dev")]
   out = tmp_path / "h.json"
-  result = subprocess.run([sys.executable, SCRIPT, "--name=clevr", f"--out={out}", *runs],
+  result = subprocess.run([*TOOL, "--name=clevr", f"--out={out}", *runs],
                           capture_output=True, text=True, timeout=120)
   assert result.returncode == 1 and not out.exists()
   assert result.stderr.strip() == (

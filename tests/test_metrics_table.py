@@ -1,4 +1,5 @@
-"""experiments/metrics_table.py: evaluation metrics of several runs side by side, from metrics.json."""
+"""slotlifter_jax/tools/metrics_table.py: evaluation metrics of several runs side by side, from
+metrics.json."""
 
 import json
 import os
@@ -7,10 +8,9 @@ import sys
 
 import pytest
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)
+from slotlifter_jax.tools import metrics_table
 
-from experiments import metrics_table  # noqa: E402
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def _write(path, *, step, **means):
@@ -27,7 +27,7 @@ def test_the_command_prints_mean_and_sample_std_per_group(tmp_path):
   b = _write(tmp_path / "b.json", step=48000, fg_ari=0.9, psnr_novel=25.0)
   c = _write(tmp_path / "c.json", step=50000, fg_ari=0.25, psnr_novel=27.5)
   out = subprocess.run(
-      [sys.executable, "experiments/metrics_table.py", f"--group=full={a},{b}",
+      [sys.executable, "-m", "slotlifter_jax.tools.metrics_table", f"--group=full={a},{b}",
        f"--group=ablated={c}", "--metrics=fg_ari,psnr_novel"],
       cwd=REPO, capture_output=True, text=True, check=True).stdout
   lines = out.splitlines()

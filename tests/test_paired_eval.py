@@ -1,4 +1,5 @@
-"""experiments/paired_eval.py: paired per-scene differences between evaluations of one split."""
+"""slotlifter_jax/tools/paired_eval.py: paired per-scene differences between evaluations of one
+split."""
 
 import json
 import math
@@ -8,10 +9,10 @@ import sys
 
 import pytest
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)
+from slotlifter_jax.tools import paired_eval
 
-from experiments import paired_eval  # noqa: E402
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+TOOL = [sys.executable, "-m", "slotlifter_jax.tools.paired_eval"]
 
 
 def _write_eval(folder, rows, *, differs=None, step=100, parameters=None):
@@ -77,7 +78,7 @@ def test_command_line_prints_writes_and_keeps_an_existing_file(tmp_path):
   b = _write_eval(tmp_path / "b", {"s0": {"fg_ari": 0.5}, "s1": {"fg_ari": 0.5}},
                   parameters="average")
   out = tmp_path / "cmp.json"
-  cmd = [sys.executable, "experiments/paired_eval.py", a, b, "--metrics=fg_ari", f"--out={out}"]
+  cmd = [*TOOL, a, b, "--metrics=fg_ari", f"--out={out}"]
   done = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
   assert done.returncode == 0, done.stderr
   assert "+0.2000" in done.stdout  # (0.3 + 0.1) / 2
@@ -92,6 +93,6 @@ def test_command_line_prints_writes_and_keeps_an_existing_file(tmp_path):
   assert again.returncode == 1 and "--overwrite" in again.stderr
   assert len(again.stderr.strip().splitlines()) == 1
   assert out.read_bytes() == before
-  bad = subprocess.run([sys.executable, "experiments/paired_eval.py", a, str(tmp_path / "x")],
+  bad = subprocess.run([*TOOL, a, str(tmp_path / "x")],
                        cwd=REPO, capture_output=True, text=True)
   assert bad.returncode == 1 and "x/metrics.json: not found" in bad.stderr

@@ -6,18 +6,15 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 
 import jax
 import pytest
 
 from slotlifter_jax import provenance
+from slotlifter_jax.tools import metrics_table
 from train_helpers import load_config
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)
-
-from experiments import metrics_table  # noqa: E402
 
 needs_git = pytest.mark.skipif(shutil.which("git") is None, reason="git is not installed")
 

@@ -1,6 +1,6 @@
 """Validation curves of several runs on one chart, e.g. an ablation against the full model.
 
-  python experiments/compare_curves.py --run=full=RUN_DIR --run=no_masking=METRICS.jsonl \
+  python -m slotlifter_jax.tools.compare_curves --run=full=RUN_DIR --run=no_masking=METRICS.jsonl \
       --keys=attn_fg_ari,fg_ari,nv_ari,psnr_novel --out=curves.png
 
 Each --run is LABEL=PATH, PATH a run folder (its metrics.jsonl) or a metrics .jsonl file such as
@@ -20,14 +20,12 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import sys
 
 import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from slotlifter_jax import emergence  # noqa: E402  (numpy and absl only, no JAX)
 
 FORMATS = {"psnr_novel": "{:.2f}", "psnr_source": "{:.2f}", "active_slots": "{:.2f}"}

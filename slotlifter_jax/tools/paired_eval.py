@@ -1,6 +1,7 @@
 """Paired comparison of evaluations of the same scenes.
 
-  python experiments/paired_eval.py BASE_EVAL OTHER_EVAL [OTHER_EVAL ...] [--out=FILE.json]
+  python -m slotlifter_jax.tools.paired_eval BASE_EVAL OTHER_EVAL [OTHER_EVAL ...] \
+      [--out=FILE.json]
 
 Each argument is an evaluation folder, DIR/eval/<split>, as `python -m slotlifter_jax.main
 --mode=eval` writes it (metrics.json and per_scene.csv): one checkpoint evaluated with other
@@ -10,8 +11,8 @@ evaluation and metric it prints the mean of the per-scene differences (other −
 its standard error over the scenes where both values are finite, and on how many scenes the
 metric rose and fell. Scenes differ more from each other than two settings do on one scene, so
 the standard error of a paired difference is smaller than that of either mean: 1.4–2.4× for
-FG-ARI and 3.5–12× for novel PSNR on the comparisons of experiments/journal/2026-11.md, "Twelfth
-round".
+FG-ARI and 3.5–12× for novel PSNR on the comparisons of experiments/journal/2026-11.md, "more slot
+attention iterations".
 
 `--out` also writes the comparison as JSON (evaluation folders, their checkpoints,
 `differs_from_training` and `parameters`, and the rows printed); an existing file is replaced only with
@@ -28,9 +29,8 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from slotlifter_jax import emergence  # noqa: E402
-from slotlifter_jax import metrics  # noqa: E402
+from slotlifter_jax import emergence
+from slotlifter_jax import metrics
 
 DEFAULT_METRICS = ("fg_ari", "nv_ari", "attn_fg_ari", "mbo", "psnr_novel", "psnr_source")
 

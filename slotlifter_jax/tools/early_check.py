@@ -1,10 +1,11 @@
 """Does an early validation foretell how a run ends? The evidence behind the restart rules
 (`train.restarts`, `train.restart_check_step`, `train.restart_signal`; slotlifter_jax/restarts.py).
 
-    python experiments/early_check.py --step=14000 --min_score=0.55 RUN ...
-    python experiments/early_check.py --sweep RUN ...
-    python experiments/early_check.py --sweep @experiments/early_check_runs.txt
-    python experiments/early_check.py --step=14000 --min_score=0.55 --min_active_slots=3 RUN ...
+    python -m slotlifter_jax.tools.early_check --step=14000 --min_score=0.55 RUN ...
+    python -m slotlifter_jax.tools.early_check --sweep RUN ...
+    python -m slotlifter_jax.tools.early_check --sweep @experiments/early_check_runs.txt
+    python -m slotlifter_jax.tools.early_check --step=14000 --min_score=0.55 \
+        --min_active_slots=3 RUN ...
 
 RUN is a run folder (its metrics.jsonl) or a copied `NAME_val_metrics.jsonl`, as in
 experiments/results/. Everything here reads the validation split only, so that a rule fitted
@@ -27,8 +28,7 @@ import sys
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from slotlifter_jax import emergence  # noqa: E402  (numpy and absl only, no JAX)
+from slotlifter_jax import emergence  # numpy and absl only, no JAX
 
 SWEEP_THRESHOLDS = np.round(np.arange(0.30, 0.801, 0.05), 2)
 

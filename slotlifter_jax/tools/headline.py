@@ -1,7 +1,7 @@
 """A data set's headline result from its seeds' run folders: one JSON file the README's tables are
 written from (experiments/tables.py).
 
-    python experiments/headline.py --name=room --split=test \
+    python -m slotlifter_jax.tools.headline --name=room --split=test \
         --out=experiments/results/headline_room.json runs/room_seed0 runs/room_seed1 ...
 
 Each RUN is a run folder of the training command, evaluated with `--mode=eval --split=SPLIT`.
@@ -21,9 +21,8 @@ import math
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from slotlifter_jax import emergence  # noqa: E402  (no JAX)
-from slotlifter_jax import restarts  # noqa: E402
+from slotlifter_jax import emergence  # no JAX
+from slotlifter_jax import restarts
 
 KEYS = ("fg_ari", "nv_ari", "psnr_novel")
 

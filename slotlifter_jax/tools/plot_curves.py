@@ -1,4 +1,6 @@
-"""Learning curves of a run: `python experiments/plot_curves.py RUN_DIR|METRICS.jsonl [OUT.png]`.
+"""Learning curves of a run.
+
+  python -m slotlifter_jax.tools.plot_curves RUN_DIR|METRICS.jsonl [OUT.png]
 
 Reads RUN_DIR/metrics.jsonl (written by training), or a copied metrics file and draws train loss/PSNR with the schedules
 (keep ratio, slot noise, locality) and the validation PSNR / ARI / FG-ARI / NV-ARI over steps.
@@ -17,7 +19,6 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from slotlifter_jax import emergence  # noqa: E402  (numpy and absl only, no JAX)
 
 EMERGENCE_KEYS = ("attn_fg_ari", "fg_ari", "nv_ari")
@@ -140,7 +141,7 @@ def main(argv: list[str]) -> None:
     print(__doc__)
     return
   if len(argv) not in (2, 3):
-    sys.exit(f"usage: {__doc__.splitlines()[0].split('`')[1]}")
+    sys.exit(f"usage: {__doc__.split(chr(10) * 2)[1].strip()}")
   run = argv[1]
   if not os.path.isfile(run) and not os.path.isfile(os.path.join(run, emergence.METRICS_FILE)):
     sys.exit(f"error: {run}: neither a metrics .jsonl file nor a run folder with "

@@ -1,7 +1,7 @@
 """A new run folder that starts where another run was at one of its checkpoints, so that a probe
 can change one setting from that step on and be compared with the run it forked from.
 
-  python experiments/fork_run.py SRC DST --checkpoint=30000
+  python -m slotlifter_jax.tools.fork_run SRC DST --checkpoint=30000
   python -m slotlifter_jax.main --config=configs/clevr.py:scene --workdir=DST --config.train.base_lr=5e-5
 
 SRC is a training run's --workdir, DST a folder that does not exist yet. --checkpoint picks the
@@ -32,9 +32,6 @@ import os
 import shutil
 import sys
 import time
-
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)
 
 
 class ForkError(ValueError):

@@ -1,6 +1,6 @@
 """Mean ± sample std of evaluation metrics over groups of runs, read from their metrics.json files.
 
-  python experiments/metrics_table.py \
+  python -m slotlifter_jax.tools.metrics_table \
       --group=full=A/eval/test/metrics.json,B/eval/test/metrics.json \
       --group=no_masking=C/eval/test/metrics.json \
       --metrics=psnr_novel,ssim,fg_ari,nv_ari,mbo,attn_fg_ari,active_slots
@@ -18,13 +18,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import sys
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, REPO)
-
-from experiments import study_tables as st  # noqa: E402  (no JAX import)
+from slotlifter_jax.tools import group_stats as st  # no JAX import
 
 DEFAULT_METRICS = "psnr_novel,ssim,fg_ari,nv_ari,ari,mbo,attn_fg_ari,active_slots"
 # Decimal places per metric; others get 3.
