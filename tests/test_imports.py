@@ -144,3 +144,18 @@ def test_cycle_detection_on_a_made_up_package(tmp_path, source, cycle):
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
   assert find_cycle(import_graph(str(tmp_path), "pkg")) == cycle
+
+
+def test_library_never_imports_experiments():
+  # experiments/ is studies and benchmarks built on the library; a library module that reached
+  # back into it would work only from a checkout with the repository root on sys.path.
+  bad = []
+  for module, path in _modules(REPO, PACKAGE).items():
+    with open(path, encoding="utf-8") as f:
+      tree = ast.parse(f.read(), filename=path)
+    for node in ast.walk(tree):
+      names = ([alias.name for alias in node.names] if isinstance(node, ast.Import) else
+               [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level else [])
+      bad += [f"{module}:{node.lineno}: imports {name}" for name in names
+              if name == "experiments" or name.startswith("experiments.")]
+  assert not bad, "\n".join(bad)
