@@ -11,7 +11,7 @@ here it is read from the file each time, and tests/test_tables.py fails when a p
 files disagree. A marker naming no table here, or a table placed in no page, is an error too.
 
 Standard library only (no JAX): the tables are means and standard errors already stored in
-`--mode=eval`'s metrics.json files and experiments/paired_eval.py's JSON files.
+`--mode=eval`'s metrics.json files and slotlifter_jax/tools/paired_eval.py's JSON files.
 """
 
 from __future__ import annotations
@@ -160,7 +160,7 @@ def fast_average_paired() -> list[str]:
     rows.append(f"| {seed} | {cells[0]} | {cells[1]} | "
                 f"{psnr['difference']:+.2f} ± {psnr['stderr']:.2f} |")
   return rows + ["", "Average − trained ± the standard error of the paired difference, on the "
-                 "100 validation scenes at the last checkpoint (experiments/paired_eval.py). "
+                 "100 validation scenes at the last checkpoint (slotlifter_jax/tools/paired_eval.py). "
                  f"Measured on {host(names)}.", _files_line(names)]
 
 

@@ -5,7 +5,7 @@ Two triggers, both read from the validation that just ran:
 - the early check at the validation of step `train.restart_check_step`, by `train.restart_signal`:
   - "labelled": the selection score (`train.select_by`) below `train.restart_min_score`. On the
     embedded clevr set the worse of validation FG-ARI and NV-ARI at step 14 000 already separates
-    the seeds that end split from those that do not (experiments/early_check.py);
+    the seeds that end split from those that do not (slotlifter_jax/tools/early_check.py);
   - "mask_free": fewer than `train.restart_min_active_slots` slots in use on the validation views
     (`validation.mask_free_statistics`), read from the model's outputs alone, for sets without
     masks (a capture, the kitchens), which have no ARI to read;
