@@ -19,7 +19,7 @@ checked out into a temporary worktree, removed at the end). Each worker imports 
 and `experiments.bench_common` from its own checkout, so both must have `bench_common.setup_step`.
 Prints, per configuration, the median step time of each side over all timed steps and the median,
 min and max over rounds of the paired ratio head/base; writes them as JSON to --out, which must
-not exist yet.
+not exist yet, with the provenance record of the call (slotlifter_jax/provenance.py).
 """
 
 from __future__ import annotations
@@ -159,8 +159,20 @@ def compare(base: _Checkout, head: _Checkout, spec: str, rounds: int, steps: int
               steps_per_round=steps, **paired_summary(times["base"], times["head"]))
 
 
+def result_record(results: list[dict], *, base: str, head: str, wall_s: float) -> dict:
+  """What --out receives: the two sides as given, the date, the CPU, the results and the
+  provenance record of this process (commit, machine, jax version, wall time). Its config is
+  None: each side builds its configurations from its own checkout's bench_common, and the
+  results name them (base_config, head_config)."""
+  from experiments.bench_common import cpu_info
+  from slotlifter_jax import provenance
+  return dict(base=base, head=head, date=time.strftime("%Y-%m-%d %H:%M:%S"), **cpu_info(),
+              results=results, **{provenance.KEY: provenance.collect(None, wall_s=wall_s)})
+
+
 def main(argv):
   del argv
+  t_start = time.perf_counter()
   if FLAGS.worker:
     import slotlifter_jax
     here = os.path.dirname(os.path.dirname(os.path.abspath(slotlifter_jax.__file__)))
@@ -172,7 +184,7 @@ def main(argv):
     raise app.UsageError("--out: give the JSON file for the results")
   if os.path.exists(FLAGS.out):
     raise app.UsageError(f"--out: {FLAGS.out} exists; not overwritten")
-  from experiments.bench_common import CONFIGS, cpu_info
+  from experiments.bench_common import CONFIGS
   try:
     pairs = [config_pair(spec) for spec in FLAGS.configs]
   except ValueError as e:
@@ -199,8 +211,8 @@ def main(argv):
     print(f"| {r['config']} | {r['base_step_s']:.4f} | {r['head_step_s']:.4f} | "
           f"{r['ratio_median']:.3f} | {r['ratio_min']:.3f}–{r['ratio_max']:.3f} |")
   os.makedirs(os.path.dirname(os.path.abspath(FLAGS.out)), exist_ok=True)
-  record = dict(base=FLAGS.base, head=FLAGS.head, date=time.strftime("%Y-%m-%d %H:%M:%S"),
-                **cpu_info(), results=results)
+  record = result_record(results, base=FLAGS.base, head=FLAGS.head,
+                         wall_s=time.perf_counter() - t_start)
   with open(FLAGS.out, "x") as f:
     json.dump(record, f, indent=1)
   print(f"[ab_step] wrote {FLAGS.out}")

@@ -9,7 +9,8 @@ threefry draw per weight), and for those of --step_configs also the train step (
 Lion), each at every XLA CPU `xla_backend_optimization_level` of --levels (3 is XLA's default),
 with the persistent compilation cache off. It prints and records the compile times, whether the
 weights and the parameters after --steps steps are bit-identical to those of level 3, and the
-step's run time. Writes experiments/results/compile_levels_<platform>.json.
+step's run time. Writes experiments/results/compile_levels_<platform>.json, with its
+provenance record (slotlifter_jax/provenance.py).
 
 Why: `init_state` compiles its program at level 1 (same weights, 0.47–0.73× the time), and the test
 suite compiles everything at level 0 (tests/conftest.py).
@@ -28,15 +29,28 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 sys.path.insert(0, os.path.join(REPO, "tests"))
 
-flags.DEFINE_list("configs", ["clevr:smoke", "clevr:scene", "clevr:paper_cpu", "clevr:", "room_chair:"],
-                  "Configurations, <file in configs/>:<variant> (empty variant: the paper's).")
-flags.DEFINE_list("step_configs", ["clevr:smoke", "clevr:scene"],
-                  "The configurations whose train step is also compiled and run (the paper's "
-                  "takes minutes per level on a CPU).")
-flags.DEFINE_list("levels", ["3", "1", "0"], "xla_backend_optimization_level values; 3 first.")
-flags.DEFINE_integer("steps", 3, "Train steps run from the init with each compiled step.")
-flags.DEFINE_string("out", os.path.join(REPO, "experiments", "results"), "Results folder.")
 FLAGS = flags.FLAGS
+
+
+def _define_flags() -> None:
+  # Defined when run, not at import: a test that imports this module for result_record must not
+  # clash with the absl flags of the same names that other scripts define in its process.
+  flags.DEFINE_list("configs", ["clevr:smoke", "clevr:scene", "clevr:paper_cpu", "clevr:",
+                                "room_chair:"],
+                    "Configurations, <file in configs/>:<variant> (empty variant: the paper's).")
+  flags.DEFINE_list("step_configs", ["clevr:smoke", "clevr:scene"],
+                    "The configurations whose train step is also compiled and run (the paper's "
+                    "takes minutes per level on a CPU).")
+  flags.DEFINE_list("levels", ["3", "1", "0"], "xla_backend_optimization_level values; 3 first.")
+  flags.DEFINE_integer("steps", 3, "Train steps run from the init with each compiled step.")
+  flags.DEFINE_string("out", os.path.join(REPO, "experiments", "results"), "Results folder.")
+
+
+def _config(spec: str):
+  """The config of `<file in configs/>:<variant>`."""
+  from train_helpers import load_config
+  name, _, variant = spec.partition(":")
+  return load_config(name, variant)
 
 
 def _timed_compile(lowered, level: int):
@@ -50,10 +64,9 @@ def measure(spec: str, levels: list[int], steps: int, with_step: bool) -> dict:
   import numpy as np
   from slotlifter_jax import model as model_lib
   from slotlifter_jax import train_step as step_lib
-  from train_helpers import fake_batch, load_config
+  from train_helpers import fake_batch
 
-  name, _, variant = spec.partition(":")
-  config = load_config(name, variant)
+  config = _config(spec)
   model = model_lib.build_model(config)
   batch = fake_batch(config)
   key = jax.random.key(0)
@@ -99,8 +112,20 @@ def measure(spec: str, levels: list[int], steps: int, with_step: bool) -> dict:
               levels=rows)
 
 
+def result_record(platform: str, steps: int, results: list[dict], configs: dict,
+                  *, wall_s: float) -> dict:
+  """The JSON this writes: the measurements of each configuration, with the provenance record of
+  the configs measured ({spec: config}) and the call's wall time."""
+  from slotlifter_jax import provenance
+  return dict(platform=platform, steps=steps, results=results,
+              **{provenance.KEY: provenance.collect(
+                  {spec: provenance.config_dict(c) for spec, c in configs.items()},
+                  wall_s=wall_s)})
+
+
 def main(argv):
   del argv
+  t_start = time.perf_counter()
   from slotlifter_jax import runtime
   runtime.set_xla_flags()
   import jax
@@ -113,9 +138,12 @@ def main(argv):
   os.makedirs(FLAGS.out, exist_ok=True)
   path = os.path.join(FLAGS.out, f"compile_levels_{jax.default_backend()}.json")
   with open(path, "w") as f:
-    json.dump(dict(platform=jax.default_backend(), steps=FLAGS.steps, results=results), f, indent=1)
+    json.dump(result_record(jax.default_backend(), FLAGS.steps, results,
+                            {spec: _config(spec) for spec in FLAGS.configs},
+                            wall_s=time.perf_counter() - t_start), f, indent=1)
   print("wrote", path)
 
 
 if __name__ == "__main__":
+  _define_flags()
   app.run(main)

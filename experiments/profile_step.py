@@ -8,7 +8,8 @@ Captures a JAX profiler trace of a few steps of the same jitted step as experime
 instruction, and attributes each to the model scope its HLO metadata names (e.g.
 `allocation/transformer/block_2/self_attn`), split into forward, backward (`transpose(…)`) and
 optimiser. Prints a table (share of the step per scope) and the most expensive instructions, and
-writes experiments/results/profile_<config>_<platform>.json.
+writes experiments/results/profile_<config>_<platform>.json, with its provenance record
+(slotlifter_jax/provenance.py).
 """
 
 from __future__ import annotations
@@ -29,15 +30,21 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
 
+from slotlifter_jax import provenance  # noqa: E402  (no JAX import)
 from slotlifter_jax import runtime  # noqa: E402
 
-flags.DEFINE_string("config", "A", "A configuration name of experiments/bench.py.")
-flags.DEFINE_integer("steps", 3, "Profiled steps (after 2 warm-up steps).")
-flags.DEFINE_integer("depth", 4, "Scope components kept when grouping (after the model root); "
-                     "the blocks of the allocation transformer are summed as block_*.")
-flags.DEFINE_integer("top", 20, "Rows of each table.")
-flags.DEFINE_string("out", os.path.join(REPO, "experiments", "results"), "Results folder.")
 FLAGS = flags.FLAGS
+
+
+def _define_flags() -> None:
+  # Defined when run, not at import: a test that imports this module for result_record must not
+  # clash with the absl flags of the same names that other scripts define in its process.
+  flags.DEFINE_string("config", "A", "A configuration name of experiments/bench.py.")
+  flags.DEFINE_integer("steps", 3, "Profiled steps (after 2 warm-up steps).")
+  flags.DEFINE_integer("depth", 4, "Scope components kept when grouping (after the model root); "
+                       "the blocks of the allocation transformer are summed as block_*.")
+  flags.DEFINE_integer("top", 20, "Rows of each table.")
+  flags.DEFINE_string("out", os.path.join(REPO, "experiments", "results"), "Results folder.")
 
 _INSTR = re.compile(r"^\s*(?:ROOT\s+)?%?([\w.\-]+)\s*=.*?metadata=\{([^}]*)\}")
 _OP_NAME = re.compile(r'op_name="([^"]*)"')
@@ -89,8 +96,20 @@ def _trace_durations(trace_dir: str) -> collections.Counter:
   return dur
 
 
+def result_record(name: str, config, *, wall: float, attributed: float,
+                  by_phase: collections.Counter, by_scope: collections.Counter,
+                  wall_s: float) -> dict:
+  """The JSON this writes: configuration `name`'s step time, profiled and attributed, by phase
+  and by scope, with the provenance record of `config` (the step as measured) and `wall_s`."""
+  return dict(config=name, wall_s_per_step=wall, attributed_s_per_step=attributed,
+              allocator=runtime.describe(), by_phase=dict(by_phase),
+              by_scope=[dict(phase=p, scope=s, seconds=v) for (p, s), v in by_scope.most_common()],
+              **{provenance.KEY: provenance.collect(config, wall_s=wall_s)})
+
+
 def main(argv):
   del argv
+  t_start = time.perf_counter()
   runtime.set_xla_flags()
   import jax
   from experiments import bench_common as bench
@@ -138,10 +157,9 @@ def main(argv):
   os.makedirs(FLAGS.out, exist_ok=True)
   path = os.path.join(FLAGS.out, f"profile_{FLAGS.config}_{jax.devices()[0].platform}.json")
   with open(path + ".tmp", "w") as f:
-    json.dump(dict(config=FLAGS.config, wall_s_per_step=wall, attributed_s_per_step=attributed,
-                   allocator=runtime.describe(), by_phase=dict(by_phase),
-                   by_scope=[dict(phase=p, scope=s, seconds=v) for (p, s), v in by_scope.most_common()]),
-              f, indent=1)
+    json.dump(result_record(FLAGS.config, config, wall=wall, attributed=attributed,
+                            by_phase=by_phase, by_scope=by_scope,
+                            wall_s=time.perf_counter() - t_start), f, indent=1)
   os.replace(path + ".tmp", path)
   print(f"\nwrote {path}")
 
@@ -149,4 +167,5 @@ def main(argv):
 if __name__ == "__main__":
   runtime.reexec_with_allocator()
   runtime.set_xla_flags()
+  _define_flags()
   app.run(main)

@@ -119,12 +119,24 @@ def summarise(records: list[dict]) -> dict:
   return dict(totals=totals, files=ordered)
 
 
+def result_record(pytest_args: list[str], returncode: int, wall: float, records: list[dict],
+                  summary: dict, *, wall_s: float) -> dict:
+  """The JSON --out receives: the pytest call, its wall seconds, the processes and summarise()'s
+  totals and files, with the provenance record of this call (commit, machine, jax version; no
+  config: the suite builds its own)."""
+  from slotlifter_jax import provenance
+  return dict(pytest_args=pytest_args, returncode=returncode, wall_s=wall,
+              processes=len(records), **summary,
+              **{provenance.KEY: provenance.collect(None, wall_s=wall_s)})
+
+
 def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--out", required=True, help="JSON file to write (refuses to overwrite)")
   parser.add_argument("--top", type=int, default=25, help="files to print")
   parser.add_argument("pytest_args", nargs="*", default=["-q"])
   args = parser.parse_args(argv)
+  t_start = time.time()
   if os.path.exists(args.out):
     parser.error(f"--out={args.out}: exists; choose another file")
   with tempfile.TemporaryDirectory(prefix="suite_accounting_") as tmp:
@@ -141,8 +153,8 @@ def main(argv=None):
     wall = time.time() - start
     records = [json.load(open(p)) for p in sorted(glob.glob(os.path.join(record_dir, "*.json")))]
   summary = summarise(records)
-  result = dict(pytest_args=args.pytest_args, returncode=rc, wall_s=wall,
-                processes=len(records), **summary)
+  result = result_record(args.pytest_args, rc, wall, records, summary,
+                         wall_s=time.time() - t_start)
   t = summary["totals"]
   print(f"pytest {' '.join(args.pytest_args)}: rc {rc}, {wall:.0f} s wall, {len(records)} processes")
   print("totals (s): " + ", ".join(f"{k} {v:.0f}" for k, v in t.items()))

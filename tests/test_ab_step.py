@@ -1,5 +1,6 @@
 """The paired step timing of two checkouts (experiments/ab_step.py): its summary and its refusals."""
 
+import json
 import os
 import subprocess
 import sys
@@ -10,6 +11,7 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
 from experiments import ab_step  # noqa: E402
+from slotlifter_jax import provenance  # noqa: E402
 
 SCRIPT = os.path.join(REPO, "experiments", "ab_step.py")
 
@@ -42,6 +44,18 @@ def test_a_config_pair_names_each_sides_configuration():
   for bad in ("scene:", ":scene", "a:b:c"):
     with pytest.raises(ValueError, match="neither NAME nor BASE:HEAD"):
       ab_step.config_pair(bad)
+
+
+def test_the_written_record_carries_provenance():
+  # What --out receives, without compiling a step: the results and where they came from.
+  results = [dict(config="scene", base_step_s=1.0, head_step_s=0.9)]
+  record = ab_step.result_record(results, base="HEAD~1", head=".", wall_s=12.5)
+  assert record["results"] == results and (record["base"], record["head"]) == ("HEAD~1", ".")
+  assert "cpu_model" in record and "date" in record
+  prov = provenance.of(record)
+  assert prov["wall_s"] == 12.5 and prov["config"] is None  # each side's configs are its own
+  assert {"git_commit", "cpu_model", "platform", "jax"} <= set(prov)
+  json.dumps(record, allow_nan=False)
 
 
 def _run(*args):

@@ -12,6 +12,8 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.join(REPO, "experiments"))
 import suite_accounting  # noqa: E402
 
+from slotlifter_jax import provenance  # noqa: E402
+
 SCRIPT = os.path.join(REPO, "experiments", "suite_accounting.py")
 
 
@@ -39,6 +41,18 @@ def test_summary_adds_phases_per_file_and_cpu_of_started_processes():
   assert list(summary["files"]) == ["tests/test_b.py", "tests/test_a.py"]  # the larger first
 
 
+def test_the_written_record_carries_provenance():
+  # What --out receives, without running a suite: the summary and where it came from.
+  summary = suite_accounting.summarise([])
+  record = suite_accounting.result_record(["-q"], 0, 30.0, [{}, {}], summary, wall_s=31.0)
+  assert record["pytest_args"] == ["-q"] and record["wall_s"] == 30.0
+  assert record["processes"] == 2 and record["totals"] == summary["totals"]
+  prov = provenance.of(record)
+  assert prov["wall_s"] == 31.0 and prov["config"] is None
+  assert {"git_commit", "cpu_model", "platform", "jax"} <= set(prov)
+  json.dumps(record, allow_nan=False)
+
+
 @pytest.mark.slow
 def test_command_line_counts_a_jit_in_an_xdist_worker_and_in_a_started_process(tmp_path):
   jit = "import jax, jax.numpy as jnp; jax.jit(lambda x: jnp.sin(x) * 2)(jnp.ones(5))"
@@ -56,6 +70,7 @@ def test_command_line_counts_a_jit_in_an_xdist_worker_and_in_a_started_process(t
   assert r.returncode == 0, r.stdout + r.stderr
   result = json.loads(out.read_text())
   assert result["returncode"] == 0 and result["processes"] >= 3  # controller, worker, started
+  assert provenance.of(result)["wall_s"] >= result["wall_s"]
   rows = {name.rsplit("/", 1)[-1]: row for name, row in result["files"].items()}
   # The worker's own jit: only the worker's record can hold it.
   worker = rows["test_in_worker.py"]
