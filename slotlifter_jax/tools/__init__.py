@@ -8,7 +8,8 @@
   python -m slotlifter_jax.tools.early_check --step=STEP --min_score=X RUN ...
   python -m slotlifter_jax.tools.headline --name=NAME --split=SPLIT --out=FILE.json RUN ...
 
-Each module's docstring gives its use. None imports JAX at module level except through the
-library modules it reads runs with (paired_eval's metrics, fork_run's checkpoints inside fork()),
-and none imports from experiments/: the studies there use these tools, not the other way round.
+Each module's docstring gives its use. Only paired_eval and headline import JAX when loaded,
+through the library modules they read runs with (metrics, restarts); fork_run does inside fork().
+None imports from experiments/: the studies there use these tools, not the other way round
+(tests/test_imports.py).
 """
