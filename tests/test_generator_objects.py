@@ -182,3 +182,19 @@ def test_plain_background_draws_the_same_rooms_without_texture():
   d = defaults.base_config().data
   d.family, d.plain_background = "room", True
   assert os.path.basename(embedded.dataset_dir(d, seed=0)).endswith("-plainbg")
+
+
+def test_plain_objects_draws_the_same_rooms_with_one_colour_chairs():
+  import numpy as np
+  draw = lambda plain: generator.generate_scene(
+      generator.scene_rng(seed=4, family="room", split="train", index=1), family="room", views=2,
+      image_size=24, plain_background=plain, plain_objects=plain)
+  textured, plain = draw(False), draw(True)
+  np.testing.assert_array_equal(plain.label, textured.label)
+  np.testing.assert_array_equal(plain.depth, textured.depth)
+  for a, b in zip(plain.spec.objects, textured.spec.objects):
+    assert a.parts == b.parts and a.material.rgb == b.material.rgb
+    assert a.material.texture == a.leg_material.texture == "plain"
+    assert a.leg_material.rgb == a.material.rgb == a.material.rgb2
+  with pytest.raises(ValueError, match="plain_objects"):
+    generator.check_object_options("clevr", plain_objects=True)

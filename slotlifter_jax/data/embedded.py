@@ -29,12 +29,13 @@ def cache_root() -> str:
 
 
 def object_options(data_config) -> dict:
-  """min_objects, max_objects, object_scale, plain_background of a data config; configs saved
-  before these fields existed get the defaults (0, 0, 1.0, False)."""
+  """min_objects, max_objects, object_scale, plain_background, plain_objects of a data config;
+  configs saved before these fields existed get the defaults (0, 0, 1.0, False, False)."""
   d = data_config
   return {"min_objects": int(d.get("min_objects", 0)), "max_objects": int(d.get("max_objects", 0)),
           "object_scale": float(d.get("object_scale", 1.0)),
-          "plain_background": bool(d.get("plain_background", False))}
+          "plain_background": bool(d.get("plain_background", False)),
+          "plain_objects": bool(d.get("plain_objects", False))}
 
 
 def num_dev_scenes(data_config) -> int:
@@ -59,6 +60,8 @@ def dataset_dir(data_config, *, seed: int) -> str:
     name += f"-o{lo}-{hi}-x{objects['object_scale']!r}"
     if objects["plain_background"]:
       name += "-plainbg"
+    if objects["plain_objects"]:
+      name += "-plainobj"
   return os.path.join(cache_root(), name)
 
 

@@ -50,6 +50,7 @@ flags.DEFINE_integer("max_objects", 0, "Most objects per scene (0: the family's 
 flags.DEFINE_float("object_scale", 1.0, "Factor on every clevr object's size, in (0, 2].")
 flags.DEFINE_bool("plain_background", False, "room only: the same scenes with untextured floor "
                   "and walls.")
+flags.DEFINE_bool("plain_objects", False, "room only: the same scenes with untextured chairs.")
 
 # Label colours for previews only (the data set's masks are grey levels).
 PREVIEW_PALETTE = np.array([
@@ -61,7 +62,8 @@ PREVIEW_GAP = 2  # pixels of white between tiles
 
 def preview_grid(*, family: str, num_scenes: int = 3, views: int = 4, image_size: int = 128,
                  seed: int = 0, supersample: int = 2, min_objects: int = 0, max_objects: int = 0,
-                 object_scale: float = 1.0, plain_background: bool = False) -> np.ndarray:
+                 object_scale: float = 1.0, plain_background: bool = False,
+                 plain_objects: bool = False) -> np.ndarray:
   """[rows·H, N·W, 3] uint8: per training scene, its N views and below them their masks."""
   rows = []
   for s in range(num_scenes):
@@ -69,7 +71,8 @@ def preview_grid(*, family: str, num_scenes: int = 3, views: int = 4, image_size
     scene = generator.generate_scene(rng, family=family, views=views, image_size=image_size,
                                      supersample=supersample, min_objects=min_objects,
                                      max_objects=max_objects, object_scale=object_scale,
-                                     plain_background=plain_background)
+                                     plain_background=plain_background,
+                                     plain_objects=plain_objects)
     rows.append(list(scene.rgb))
     rows.append([PREVIEW_PALETTE[lab % len(PREVIEW_PALETTE)] for lab in scene.label])
   h = w = image_size
@@ -84,7 +87,8 @@ def preview_grid(*, family: str, num_scenes: int = 3, views: int = 4, image_size
 def main(argv):
   del argv
   objects = dict(min_objects=FLAGS.min_objects, max_objects=FLAGS.max_objects,
-                 object_scale=FLAGS.object_scale, plain_background=FLAGS.plain_background)
+                 object_scale=FLAGS.object_scale, plain_background=FLAGS.plain_background,
+                 plain_objects=FLAGS.plain_objects)
   try:
     generator.check_object_options(FLAGS.family, **objects)
   except generator.ObjectOptionError as e:

@@ -285,7 +285,8 @@ class ObjectOptionError(ValueError):
 
 
 def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0,
-                         object_scale: float = 1.0, plain_background: bool = False) -> None:
+                         object_scale: float = 1.0, plain_background: bool = False,
+                         plain_objects: bool = False) -> None:
   """ObjectOptionError (a ValueError) naming the offending field unless the options describe a
   set this generator can draw."""
   if family not in FAMILIES:
@@ -303,9 +304,10 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
     raise ObjectOptionError("object_scale", f"object_scale applies to the clevr family only (the "
                                             f"{family} family's objects have their own size "
                                             f"ranges), got {object_scale}")
-  if plain_background and family != "room":
-    raise ObjectOptionError("plain_background", f"plain_background applies to the room family "
-                                                f"only (the {family} floor is plain already)")
+  for name, on in (("plain_background", plain_background), ("plain_objects", plain_objects)):
+    if on and family != "room":
+      raise ObjectOptionError(name, f"{name} applies to the room family only (the {family} "
+                                    f"set is plain already)")
   if not 0.0 < object_scale <= MAX_OBJECT_SCALE:
     raise ObjectOptionError("object_scale", f"object_scale must lie in (0, {MAX_OBJECT_SCALE}] "
                                             f"(larger objects no longer fit the default scene "
@@ -313,10 +315,12 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
 
 
 def is_default_objects(family: str, min_objects: int = 0, max_objects: int = 0,
-                       object_scale: float = 1.0, plain_background: bool = False) -> bool:
+                       object_scale: float = 1.0, plain_background: bool = False,
+                       plain_objects: bool = False) -> bool:
   """True when the options draw the family's default set (explicit 5 and 7 count as default)."""
-  return not plain_background and (object_count_range(family, min_objects, max_objects) == object_count_range(family)
-          and object_scale == 1.0)
+  return not (plain_background or plain_objects) and (
+      object_count_range(family, min_objects, max_objects) == object_count_range(family)
+      and object_scale == 1.0)
 
 
 def sample_clevr_layout(rng: np.random.Generator, *, min_objects: int = 0, max_objects: int = 0,
@@ -419,12 +423,14 @@ def _chair(rng: np.random.Generator, label: int, xy: np.ndarray, yaw: float,
 
 
 def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
-                       max_objects: int = 0, plain_background: bool = False) -> SceneSpec:
+                       max_objects: int = 0, plain_background: bool = False,
+                       plain_objects: bool = False) -> SceneSpec:
   """1–4 primitive chairs on a textured floor inside four walls (docs/method.md §3.5).
 
   `min_objects`, `max_objects` (0: 1 and 4) narrow the chair count; the defaults draw as before.
   `plain_background`: the same scenes (every random draw is made as before) with the floor and the
   walls in their base colour, untextured: the rung that tells a texture problem from a chair one.
+  `plain_objects`: likewise each chair in its one base colour, legs included.
   """
   check_object_options("room", min_objects, max_objects)
   lo, hi = object_count_range("room", min_objects, max_objects)
@@ -464,5 +470,10 @@ def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
   if plain_background:
     floor = dataclasses.replace(floor, texture="plain", rgb2=floor.rgb)
     walls = tuple(dataclasses.replace(w, texture="plain", rgb2=w.rgb) for w in walls)
+  if plain_objects:
+    objects = tuple(dataclasses.replace(
+        o, material=dataclasses.replace(o.material, texture="plain", rgb2=o.material.rgb),
+        leg_material=dataclasses.replace(o.material, texture="plain", rgb2=o.material.rgb))
+        for o in objects)
   return SceneSpec(family="room", objects=objects, lights=lights, ambient=(0.2, 0.2, 0.21),
                    floor=floor, walls=walls)

@@ -68,12 +68,13 @@ def scene_rng(*, seed: int, family: str, split: str, index: int) -> np.random.Ge
 def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                    supersample: int = 2, max_attempts: int = 100, min_objects: int = 0,
                    max_objects: int = 0, object_scale: float = 1.0,
-                   plain_background: bool = False) -> GeneratedScene:
+                   plain_background: bool = False,
+                   plain_objects: bool = False) -> GeneratedScene:
   """Samples layouts and cameras until every object covers enough pixels of view 0, then renders.
 
   `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
-  select an easier set; see `sample_clevr_layout`. `plain_background` (room only): the same
-  scenes with untextured floor and walls (`sample_room_layout`).
+  select an easier set; see `sample_clevr_layout`. `plain_background`, `plain_objects` (room
+  only): the same scenes with untextured floor and walls, or chairs (`sample_room_layout`).
 
   Renders on the CPU backend, so the files do not depend on the accelerator (if any) of the
   calling process, and a training process never shares its accelerator memory with the generator.
@@ -83,7 +84,8 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
     return _generate_scene(rng, family=family, views=views, image_size=image_size,
                            supersample=supersample, max_attempts=max_attempts,
                            min_objects=min_objects, max_objects=max_objects,
-                           object_scale=object_scale, plain_background=plain_background)
+                           object_scale=object_scale, plain_background=plain_background,
+                           plain_objects=plain_objects)
 
 
 def _cpu_device():
@@ -97,7 +99,7 @@ def _cpu_device():
 def draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                supersample: int = 2, max_attempts: int = 100, min_objects: int = 0,
                max_objects: int = 0, object_scale: float = 1.0,
-               plain_background: bool = False):
+               plain_background: bool = False, plain_objects: bool = False):
   """The layout and cameras `generate_scene` draws from `rng`, without the final render:
   (spec, cameras, cam_to_world [N, 4, 4], attempts). Scene edits (data/scene_edits.py) re-draw
   a stored scene's SceneSpec with it, from the seed its dataset.json records."""
@@ -105,7 +107,8 @@ def draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size:
     return _draw_scene(rng, family=family, views=views, image_size=image_size,
                        supersample=supersample, max_attempts=max_attempts,
                        min_objects=min_objects, max_objects=max_objects,
-                       object_scale=object_scale, plain_background=plain_background)
+                       object_scale=object_scale, plain_background=plain_background,
+                       plain_objects=plain_objects)
 
 
 def render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
@@ -118,8 +121,10 @@ def render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
 
 def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                 supersample: int, max_attempts: int, min_objects: int, max_objects: int,
-                object_scale: float, plain_background: bool = False):
-  check_object_options(family, min_objects, max_objects, object_scale, plain_background)
+                object_scale: float, plain_background: bool = False,
+                plain_objects: bool = False):
+  check_object_options(family, min_objects, max_objects, object_scale, plain_background,
+                       plain_objects)
   options = render_options(family, supersample)
   k32 = jnp.asarray(uorf_intrinsics(image_size), jnp.float32)
   threshold = min_visible_pixels(image_size)
@@ -129,7 +134,8 @@ def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size
                                  object_scale=object_scale)
     else:
       spec = sample_room_layout(rng, min_objects=min_objects, max_objects=max_objects,
-                                plain_background=plain_background)
+                                plain_background=plain_background,
+                                plain_objects=plain_objects)
     cameras = tuple(sample_cameras(rng, views))
     c2w = np.stack([camera_to_world(c) for c in cameras])
     arrays = scene_arrays(spec)
@@ -155,11 +161,12 @@ def _render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
 
 def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                     supersample: int, max_attempts: int, min_objects: int, max_objects: int,
-                    object_scale: float, plain_background: bool = False) -> GeneratedScene:
+                    object_scale: float, plain_background: bool = False,
+                    plain_objects: bool = False) -> GeneratedScene:
   spec, cameras, c2w, attempts = _draw_scene(
       rng, family=family, views=views, image_size=image_size, supersample=supersample,
       max_attempts=max_attempts, min_objects=min_objects, max_objects=max_objects,
-      object_scale=object_scale, plain_background=plain_background)
+      object_scale=object_scale, plain_background=plain_background, plain_objects=plain_objects)
   rgb, label, depth = _render_scene(spec, c2w, image_size=image_size, supersample=supersample)
   return GeneratedScene(spec=spec, cameras=cameras, cam_to_world=c2w,
                         intrinsics=uorf_intrinsics(image_size), rgb=rgb, label=label, depth=depth,
@@ -202,6 +209,7 @@ class _SceneTask:
   max_objects: int = 0
   object_scale: float = 1.0
   plain_background: bool = False
+  plain_objects: bool = False
 
 
 def _write_scene(task: _SceneTask) -> dict:
@@ -210,7 +218,8 @@ def _write_scene(task: _SceneTask) -> dict:
   scene = generate_scene(rng, family=task.family, views=task.views, image_size=task.image_size,
                          supersample=task.supersample, min_objects=task.min_objects,
                          max_objects=task.max_objects, object_scale=task.object_scale,
-                         plain_background=task.plain_background)
+                         plain_background=task.plain_background,
+                         plain_objects=task.plain_objects)
   k_norm = normalised_intrinsics(scene.intrinsics, task.image_size)
   stems = []
   for a in range(task.views):
@@ -244,7 +253,8 @@ def _worker_init() -> None:
 
 def _split_header(*, family: str, split: str, seed: int, views: int, image_size: int,
                   num_scenes: int, supersample: int, min_objects: int = 0, max_objects: int = 0,
-                  object_scale: float = 1.0, plain_background: bool = False) -> dict:
+                  object_scale: float = 1.0, plain_background: bool = False,
+                  plain_objects: bool = False) -> dict:
   k = uorf_intrinsics(image_size)
   header = {
       "format": "slotlifter_jax.generated", "generator_version": GENERATOR_VERSION,
@@ -270,12 +280,15 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
   }
   # Only non-default sets record their object options, so default dataset.json files are unchanged
   # (and _existing_split_matches tells the two apart by the key's presence).
-  if not is_default_objects(family, min_objects, max_objects, object_scale, plain_background):
+  if not is_default_objects(family, min_objects, max_objects, object_scale, plain_background,
+                            plain_objects):
     lo, hi = object_count_range(family, min_objects, max_objects)
     header["objects"] = {"min_objects": lo, "max_objects": hi,
                          "object_scale": float(object_scale)}
     if plain_background:
       header["objects"]["plain_background"] = True
+    if plain_objects:
+      header["objects"]["plain_objects"] = True
   return header
 
 
@@ -296,7 +309,7 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
                      num_workers: Optional[int] = None, progress: bool = True,
                      overwrite: bool = False, supersample: int = 2, min_objects: int = 0,
                      max_objects: int = 0, object_scale: float = 1.0,
-                     plain_background: bool = False) -> dict:
+                     plain_background: bool = False, plain_objects: bool = False) -> dict:
   """Writes <out_dir>/<subset>_{train,val,dev,test} and returns a summary (seconds per split).
 
   `num_dev` (None: as many as `num_test`) scenes of the development split, the former test split
@@ -305,7 +318,8 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
   `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
   select an easier set (`sample_clevr_layout`); its dataset.json headers record them under
   "objects", and each scene's entry lists its objects. The folder names stay the family's.
-  `plain_background` (room only) draws the same scenes with untextured floor and walls.
+  `plain_background`, `plain_objects` (room only) draw the same scenes with untextured floor and
+  walls, or chairs.
 
   A split whose folder already holds a dataset.json with the same generation parameters is kept
   as it is (this resumes an interrupted run); any other non-empty split folder is an error unless
@@ -320,9 +334,10 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
     raise ValueError(f"unknown family {family!r}; choose one of {FAMILIES}")
   if views < 1 or image_size < 8:
     raise ValueError(f"need views ≥ 1 and image_size ≥ 8, got {views}, {image_size}")
-  check_object_options(family, min_objects, max_objects, object_scale, plain_background)
+  check_object_options(family, min_objects, max_objects, object_scale, plain_background,
+                       plain_objects)
   objects = dict(min_objects=min_objects, max_objects=max_objects, object_scale=object_scale,
-                 plain_background=plain_background)
+                 plain_background=plain_background, plain_objects=plain_objects)
   subset = SUBSETS[family]
   if num_dev is None:
     num_dev = num_test
