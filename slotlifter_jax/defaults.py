@@ -110,7 +110,8 @@ def base_config() -> ml_collections.ConfigDict:
   # Embedded room set only: the same scenes with untextured floor and walls (its own cache folder),
   # the ladder's rung between a texture problem and a chair one.
   d.plain_background = False
-  d.plain_objects = False  # and the chairs in one colour each, legs included: the easiest rung
+  d.plain_objects = False  # and the chairs in one colour each, legs included
+  d.no_walls = False  # and no walls: the floor runs to the horizon, as in the clevr family
   d.novel_ray_prob = 0.75  # probability that a scene's rays come from novel views only
   # "uniform" (paper) or "contrast": a share `contrast_mix` of the rays drawn towards pixels far
   # from their view's median colour (data/pipeline.py says why and what it changes).

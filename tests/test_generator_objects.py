@@ -198,3 +198,19 @@ def test_plain_objects_draws_the_same_rooms_with_one_colour_chairs():
     assert a.leg_material.rgb == a.material.rgb == a.material.rgb2
   with pytest.raises(ValueError, match="plain_objects"):
     generator.check_object_options("clevr", plain_objects=True)
+
+
+def test_no_walls_draws_the_same_rooms_without_walls():
+  import numpy as np
+  draw = lambda no_walls: generator.generate_scene(
+      generator.scene_rng(seed=4, family="room", split="train", index=1), family="room", views=2,
+      image_size=24, no_walls=no_walls)
+  walled, open_room = draw(False), draw(True)
+  assert open_room.spec.walls is None and walled.spec.walls is not None
+  assert open_room.spec.objects == walled.spec.objects
+  # The walls never stand in front of a chair (the near ones are culled): the same chair masks.
+  np.testing.assert_array_equal(open_room.label, walled.label)
+  # Where the walls were, the floor or the sky now shows, farther away.
+  assert np.all(open_room.depth[walled.label == 0] >= walled.depth[walled.label == 0] - 1e-4)
+  with pytest.raises(ValueError, match="no_walls"):
+    generator.check_object_options("clevr", no_walls=True)

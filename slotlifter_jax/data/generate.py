@@ -51,6 +51,7 @@ flags.DEFINE_float("object_scale", 1.0, "Factor on every clevr object's size, in
 flags.DEFINE_bool("plain_background", False, "room only: the same scenes with untextured floor "
                   "and walls.")
 flags.DEFINE_bool("plain_objects", False, "room only: the same scenes with untextured chairs.")
+flags.DEFINE_bool("no_walls", False, "room only: the same scenes without walls.")
 
 # Label colours for previews only (the data set's masks are grey levels).
 PREVIEW_PALETTE = np.array([
@@ -63,7 +64,7 @@ PREVIEW_GAP = 2  # pixels of white between tiles
 def preview_grid(*, family: str, num_scenes: int = 3, views: int = 4, image_size: int = 128,
                  seed: int = 0, supersample: int = 2, min_objects: int = 0, max_objects: int = 0,
                  object_scale: float = 1.0, plain_background: bool = False,
-                 plain_objects: bool = False) -> np.ndarray:
+                 plain_objects: bool = False, no_walls: bool = False) -> np.ndarray:
   """[rows·H, N·W, 3] uint8: per training scene, its N views and below them their masks."""
   rows = []
   for s in range(num_scenes):
@@ -72,7 +73,7 @@ def preview_grid(*, family: str, num_scenes: int = 3, views: int = 4, image_size
                                      supersample=supersample, min_objects=min_objects,
                                      max_objects=max_objects, object_scale=object_scale,
                                      plain_background=plain_background,
-                                     plain_objects=plain_objects)
+                                     plain_objects=plain_objects, no_walls=no_walls)
     rows.append(list(scene.rgb))
     rows.append([PREVIEW_PALETTE[lab % len(PREVIEW_PALETTE)] for lab in scene.label])
   h = w = image_size
@@ -88,7 +89,7 @@ def main(argv):
   del argv
   objects = dict(min_objects=FLAGS.min_objects, max_objects=FLAGS.max_objects,
                  object_scale=FLAGS.object_scale, plain_background=FLAGS.plain_background,
-                 plain_objects=FLAGS.plain_objects)
+                 plain_objects=FLAGS.plain_objects, no_walls=FLAGS.no_walls)
   try:
     generator.check_object_options(FLAGS.family, **objects)
   except generator.ObjectOptionError as e:

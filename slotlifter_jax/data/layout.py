@@ -286,7 +286,7 @@ class ObjectOptionError(ValueError):
 
 def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0,
                          object_scale: float = 1.0, plain_background: bool = False,
-                         plain_objects: bool = False) -> None:
+                         plain_objects: bool = False, no_walls: bool = False) -> None:
   """ObjectOptionError (a ValueError) naming the offending field unless the options describe a
   set this generator can draw."""
   if family not in FAMILIES:
@@ -304,7 +304,8 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
     raise ObjectOptionError("object_scale", f"object_scale applies to the clevr family only (the "
                                             f"{family} family's objects have their own size "
                                             f"ranges), got {object_scale}")
-  for name, on in (("plain_background", plain_background), ("plain_objects", plain_objects)):
+  for name, on in (("plain_background", plain_background), ("plain_objects", plain_objects),
+                   ("no_walls", no_walls)):
     if on and family != "room":
       raise ObjectOptionError(name, f"{name} applies to the room family only (the {family} "
                                     f"set is plain already)")
@@ -316,9 +317,9 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
 
 def is_default_objects(family: str, min_objects: int = 0, max_objects: int = 0,
                        object_scale: float = 1.0, plain_background: bool = False,
-                       plain_objects: bool = False) -> bool:
+                       plain_objects: bool = False, no_walls: bool = False) -> bool:
   """True when the options draw the family's default set (explicit 5 and 7 count as default)."""
-  return not (plain_background or plain_objects) and (
+  return not (plain_background or plain_objects or no_walls) and (
       object_count_range(family, min_objects, max_objects) == object_count_range(family)
       and object_scale == 1.0)
 
@@ -424,13 +425,14 @@ def _chair(rng: np.random.Generator, label: int, xy: np.ndarray, yaw: float,
 
 def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
                        max_objects: int = 0, plain_background: bool = False,
-                       plain_objects: bool = False) -> SceneSpec:
+                       plain_objects: bool = False, no_walls: bool = False) -> SceneSpec:
   """1–4 primitive chairs on a textured floor inside four walls (docs/method.md §3.5).
 
   `min_objects`, `max_objects` (0: 1 and 4) narrow the chair count; the defaults draw as before.
   `plain_background`: the same scenes (every random draw is made as before) with the floor and the
   walls in their base colour, untextured: the rung that tells a texture problem from a chair one.
-  `plain_objects`: likewise each chair in its one base colour, legs included.
+  `plain_objects`: likewise each chair in its one base colour, legs included. `no_walls`: the
+  same scenes without walls, the floor running to the horizon as in the clevr family.
   """
   check_object_options("room", min_objects, max_objects)
   lo, hi = object_count_range("room", min_objects, max_objects)
@@ -476,4 +478,4 @@ def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
         leg_material=dataclasses.replace(o.material, texture="plain", rgb2=o.material.rgb))
         for o in objects)
   return SceneSpec(family="room", objects=objects, lights=lights, ambient=(0.2, 0.2, 0.21),
-                   floor=floor, walls=walls)
+                   floor=floor, walls=None if no_walls else walls)

@@ -85,11 +85,12 @@ class RenderOptions:
   quadrics: bool = True  # False: every primitive is a box, skip the quadric term
 
 
-def render_options(family: str, supersample: int = 2) -> RenderOptions:
+def render_options(family: str, supersample: int = 2, walls: bool = True) -> RenderOptions:
+  """`walls`: False renders a room family scene without walls (its floor to the horizon)."""
   if family == "clevr":
     return RenderOptions(supersample=supersample, reflections=True, textures=False, walls=False,
                          quadrics=True)
-  return RenderOptions(supersample=supersample, reflections=False, textures=True, walls=True,
+  return RenderOptions(supersample=supersample, reflections=False, textures=True, walls=walls,
                        quadrics=False)
 
 

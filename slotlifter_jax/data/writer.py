@@ -69,12 +69,13 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
                    supersample: int = 2, max_attempts: int = 100, min_objects: int = 0,
                    max_objects: int = 0, object_scale: float = 1.0,
                    plain_background: bool = False,
-                   plain_objects: bool = False) -> GeneratedScene:
+                   plain_objects: bool = False, no_walls: bool = False) -> GeneratedScene:
   """Samples layouts and cameras until every object covers enough pixels of view 0, then renders.
 
   `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
   select an easier set; see `sample_clevr_layout`. `plain_background`, `plain_objects` (room
-  only): the same scenes with untextured floor and walls, or chairs (`sample_room_layout`).
+  only): the same scenes with untextured floor and walls, or chairs; `no_walls` (room only):
+  without the walls (`sample_room_layout`).
 
   Renders on the CPU backend, so the files do not depend on the accelerator (if any) of the
   calling process, and a training process never shares its accelerator memory with the generator.
@@ -85,7 +86,7 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
                            supersample=supersample, max_attempts=max_attempts,
                            min_objects=min_objects, max_objects=max_objects,
                            object_scale=object_scale, plain_background=plain_background,
-                           plain_objects=plain_objects)
+                           plain_objects=plain_objects, no_walls=no_walls)
 
 
 def _cpu_device():
@@ -99,7 +100,8 @@ def _cpu_device():
 def draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                supersample: int = 2, max_attempts: int = 100, min_objects: int = 0,
                max_objects: int = 0, object_scale: float = 1.0,
-               plain_background: bool = False, plain_objects: bool = False):
+               plain_background: bool = False, plain_objects: bool = False,
+               no_walls: bool = False):
   """The layout and cameras `generate_scene` draws from `rng`, without the final render:
   (spec, cameras, cam_to_world [N, 4, 4], attempts). Scene edits (data/scene_edits.py) re-draw
   a stored scene's SceneSpec with it, from the seed its dataset.json records."""
@@ -108,7 +110,7 @@ def draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size:
                        supersample=supersample, max_attempts=max_attempts,
                        min_objects=min_objects, max_objects=max_objects,
                        object_scale=object_scale, plain_background=plain_background,
-                       plain_objects=plain_objects)
+                       plain_objects=plain_objects, no_walls=no_walls)
 
 
 def render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
@@ -122,10 +124,10 @@ def render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
 def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                 supersample: int, max_attempts: int, min_objects: int, max_objects: int,
                 object_scale: float, plain_background: bool = False,
-                plain_objects: bool = False):
+                plain_objects: bool = False, no_walls: bool = False):
   check_object_options(family, min_objects, max_objects, object_scale, plain_background,
-                       plain_objects)
-  options = render_options(family, supersample)
+                       plain_objects, no_walls)
+  options = render_options(family, supersample, walls=not no_walls)
   k32 = jnp.asarray(uorf_intrinsics(image_size), jnp.float32)
   threshold = min_visible_pixels(image_size)
   for attempt in range(1, max_attempts + 1):
@@ -135,7 +137,7 @@ def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size
     else:
       spec = sample_room_layout(rng, min_objects=min_objects, max_objects=max_objects,
                                 plain_background=plain_background,
-                                plain_objects=plain_objects)
+                                plain_objects=plain_objects, no_walls=no_walls)
     cameras = tuple(sample_cameras(rng, views))
     c2w = np.stack([camera_to_world(c) for c in cameras])
     arrays = scene_arrays(spec)
@@ -153,7 +155,9 @@ def _render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
                   supersample: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
   out = render_views(scene_arrays(spec), cam_to_world=jnp.asarray(cam_to_world, jnp.float32),
                      intrinsics=jnp.asarray(uorf_intrinsics(image_size), jnp.float32),
-                     image_size=image_size, options=render_options(spec.family, supersample))
+                     image_size=image_size,
+                     options=render_options(spec.family, supersample,
+                                            walls=spec.walls is not None))
   rgb = np.asarray(out.rgb, np.float32)
   return (np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8),
           np.asarray(out.label, np.int32), np.asarray(out.depth, np.float32))
@@ -162,11 +166,12 @@ def _render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
 def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                     supersample: int, max_attempts: int, min_objects: int, max_objects: int,
                     object_scale: float, plain_background: bool = False,
-                    plain_objects: bool = False) -> GeneratedScene:
+                    plain_objects: bool = False, no_walls: bool = False) -> GeneratedScene:
   spec, cameras, c2w, attempts = _draw_scene(
       rng, family=family, views=views, image_size=image_size, supersample=supersample,
       max_attempts=max_attempts, min_objects=min_objects, max_objects=max_objects,
-      object_scale=object_scale, plain_background=plain_background, plain_objects=plain_objects)
+      object_scale=object_scale, plain_background=plain_background, plain_objects=plain_objects,
+      no_walls=no_walls)
   rgb, label, depth = _render_scene(spec, c2w, image_size=image_size, supersample=supersample)
   return GeneratedScene(spec=spec, cameras=cameras, cam_to_world=c2w,
                         intrinsics=uorf_intrinsics(image_size), rgb=rgb, label=label, depth=depth,
@@ -210,6 +215,7 @@ class _SceneTask:
   object_scale: float = 1.0
   plain_background: bool = False
   plain_objects: bool = False
+  no_walls: bool = False
 
 
 def _write_scene(task: _SceneTask) -> dict:
@@ -219,7 +225,7 @@ def _write_scene(task: _SceneTask) -> dict:
                          supersample=task.supersample, min_objects=task.min_objects,
                          max_objects=task.max_objects, object_scale=task.object_scale,
                          plain_background=task.plain_background,
-                         plain_objects=task.plain_objects)
+                         plain_objects=task.plain_objects, no_walls=task.no_walls)
   k_norm = normalised_intrinsics(scene.intrinsics, task.image_size)
   stems = []
   for a in range(task.views):
@@ -254,7 +260,7 @@ def _worker_init() -> None:
 def _split_header(*, family: str, split: str, seed: int, views: int, image_size: int,
                   num_scenes: int, supersample: int, min_objects: int = 0, max_objects: int = 0,
                   object_scale: float = 1.0, plain_background: bool = False,
-                  plain_objects: bool = False) -> dict:
+                  plain_objects: bool = False, no_walls: bool = False) -> dict:
   k = uorf_intrinsics(image_size)
   header = {
       "format": "slotlifter_jax.generated", "generator_version": GENERATOR_VERSION,
@@ -270,7 +276,8 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
                                        "cy": k[1, 2], "width": image_size,
                                        "height": image_size}},
       "background": {"floor_z": 0.0,
-                     "wall_half_size": ROOM_HALF_SIZE if family == "room" else None},
+                     "wall_half_size": ROOM_HALF_SIZE if family == "room" and not no_walls
+                     else None},
       "depth": {"kind": "camera_z", "units": "world", "dtype": "float32",
                 "sample": "pixel centre", "no_hit": 0.0},
       "mask": {"background_label": BACKGROUND_LABEL, "max_objects": MAX_OBJECTS[family],
@@ -281,7 +288,7 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
   # Only non-default sets record their object options, so default dataset.json files are unchanged
   # (and _existing_split_matches tells the two apart by the key's presence).
   if not is_default_objects(family, min_objects, max_objects, object_scale, plain_background,
-                            plain_objects):
+                            plain_objects, no_walls):
     lo, hi = object_count_range(family, min_objects, max_objects)
     header["objects"] = {"min_objects": lo, "max_objects": hi,
                          "object_scale": float(object_scale)}
@@ -289,6 +296,8 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
       header["objects"]["plain_background"] = True
     if plain_objects:
       header["objects"]["plain_objects"] = True
+    if no_walls:
+      header["objects"]["no_walls"] = True
   return header
 
 
@@ -309,7 +318,8 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
                      num_workers: Optional[int] = None, progress: bool = True,
                      overwrite: bool = False, supersample: int = 2, min_objects: int = 0,
                      max_objects: int = 0, object_scale: float = 1.0,
-                     plain_background: bool = False, plain_objects: bool = False) -> dict:
+                     plain_background: bool = False, plain_objects: bool = False,
+                     no_walls: bool = False) -> dict:
   """Writes <out_dir>/<subset>_{train,val,dev,test} and returns a summary (seconds per split).
 
   `num_dev` (None: as many as `num_test`) scenes of the development split, the former test split
@@ -319,7 +329,7 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
   select an easier set (`sample_clevr_layout`); its dataset.json headers record them under
   "objects", and each scene's entry lists its objects. The folder names stay the family's.
   `plain_background`, `plain_objects` (room only) draw the same scenes with untextured floor and
-  walls, or chairs.
+  walls, or chairs; `no_walls` (room only) without the walls.
 
   A split whose folder already holds a dataset.json with the same generation parameters is kept
   as it is (this resumes an interrupted run); any other non-empty split folder is an error unless
@@ -335,9 +345,10 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
   if views < 1 or image_size < 8:
     raise ValueError(f"need views ≥ 1 and image_size ≥ 8, got {views}, {image_size}")
   check_object_options(family, min_objects, max_objects, object_scale, plain_background,
-                       plain_objects)
+                       plain_objects, no_walls)
   objects = dict(min_objects=min_objects, max_objects=max_objects, object_scale=object_scale,
-                 plain_background=plain_background, plain_objects=plain_objects)
+                 plain_background=plain_background, plain_objects=plain_objects,
+                 no_walls=no_walls)
   subset = SUBSETS[family]
   if num_dev is None:
     num_dev = num_test
