@@ -11,7 +11,8 @@ here it is read from the file each time, and tests/test_tables.py fails when a p
 files disagree. A marker naming no table here, or a table placed in no page, is an error too.
 
 Standard library only (no JAX): the tables are means and standard errors already stored in
-`--mode=eval`'s metrics.json files and slotlifter_jax/tools/paired_eval.py's JSON files.
+`--mode=eval`'s metrics.json files and slotlifter_jax/tools/paired_eval.py's JSON files, the
+benchmark JSON of experiments/bench.py, and the files of experiments/gpu_figures.sh.
 """
 
 from __future__ import annotations
@@ -167,10 +168,164 @@ def fast_average_paired() -> list[str]:
                  f"Measured on {host(names)}.", _files_line(names)]
 
 
+def _bench(name: str = "bench_cpu.json") -> dict:
+  return _load(name)["configs"]
+
+
+def _bench_entry(configs: dict, key: str) -> dict:
+  if key not in configs:
+    raise TableError(f"experiments/results/bench_cpu.json: no configuration {key!r}")
+  return configs[key]
+
+
+def _seconds(value: float) -> str:
+  return f"{value:.3f}" if value < 1 else f"{value:.2f}"
+
+
+def _measured(configs: dict, keys) -> str:
+  """'KEY, KEY: DATE (ALLOCATOR); …' from each bench entry's `measured` record."""
+  groups: dict[str, list[str]] = {}
+  for key in keys:
+    record = configs[key].get("measured") or {}
+    allocator = (record.get("allocator") or "allocator not recorded").removeprefix("allocator: ")
+    groups.setdefault(f"{record.get('date', 'date not recorded')[:10]} ({allocator})", []).append(key)
+  return "; ".join(f"{', '.join(ks)}: {when}" for when, ks in groups.items())
+
+
+ALLOCATORS = (("system", "system (glibc)"), ("mimalloc", "mimalloc"), ("tcmalloc", "tcmalloc"))
+
+
+def bench_allocators() -> list[str]:
+  """docs/performance.md §1: configs B and A with each allocator, side by side in one run."""
+  configs = _bench()
+  rows = ["| config | allocator | s/step | peak RSS GB |", "|---|---|---|---|"]
+  keys = []
+  for config in ("B", "A"):
+    for allocator, label in ALLOCATORS:
+      key = f"{config}@{allocator}"
+      d = _bench_entry(configs, key)
+      keys.append(key)
+      rows.append(f"| {config} | {label} | {_seconds(d['step_s_median'])} | "
+                  f"{d['train_peak_rss_gb']:.2f} |")
+  note = (f"s/step: the median of the timed steps; peak RSS: the process's peak while training. "
+          f"Measured on the project's 2-core CPU, {_measured(configs, keys)}. "
+          f"File: `experiments/results/bench_cpu.json`, keys {', '.join(keys)}.")
+  return ["  " + line for line in rows] + ["", "  " + note]
+
+
+def bench_memory() -> list[str]:
+  """docs/performance.md §4: time and memory of the step for A, the paper's batch, A with scan and
+  remat, and B."""
+  configs = _bench()
+  a, paper, lowmem, b = (_bench_entry(configs, k) for k in ("A", "paper_batch", "A_lowmem", "B"))
+  labels = (
+      ("A", a, f"A ({a['batch_scenes']} × {a['rays_per_scene']} rays, {a['num_samples']} samples)",
+       " (one doubled step, §1)"),
+      ("paper_batch", paper, f"paper_batch ({paper['batch_scenes']} × {paper['rays_per_scene']} "
+       f"rays, {paper['grad_accum_chunks']} scene chunks)", ""),
+      ("A_lowmem", lowmem, f"A_lowmem (scan + remat, {lowmem['grad_accum_chunks']} scene × "
+       f"{lowmem['ray_chunks']} ray chunks)", ""),
+      ("B", b, f"B ({b['batch_scenes']} × {b['rays_per_scene']} rays, {b['num_samples']} samples)",
+       ""),
+  )
+  rows = ["| config | s/step | XLA temp GB | peak RSS GB |", "|---|---|---|---|"]
+  for _, d, label, rss_note in labels:
+    rows.append(f"| {label} | {_seconds(d['step_s_median'])} | {d['xla_temp_gb']:.2f} | "
+                f"{d['train_peak_rss_gb']:.2f}{rss_note} |")
+  keys = [k for k, *_ in labels]
+  return rows + ["", "s/step: the median of the timed steps; XLA temp: the step's temporary buffer; "
+                 "peak RSS: the process's peak while training. Measured on the project's 2-core "
+                 f"CPU, {_measured(configs, keys)}. File: `experiments/results/bench_cpu.json`, keys "
+                 f"{', '.join(keys)}."]
+
+
+QUICK = "clevr_quick_test_metrics.json"
+QUICK_COLUMNS = (("psnr_novel", "{:.2f}"), ("ssim", "{:.3f}"), ("lpips", "{:.3f}"),
+                 ("psnr_source", "{:.2f}"), ("ari", "{:.3f}"), ("fg_ari", "{:.3f}"),
+                 ("nv_ari", "{:.3f}"), ("nv_fg_ari", "{:.3f}"), ("mbo", "{:.3f}"))
+QUICK_HEADER = ("| run | novel-view PSNR | SSIM | LPIPS (alex) | source PSNR | ARI | FG-ARI | "
+                "NV-ARI | NV-FG-ARI | mBO | active slots / objects |")
+
+
+def quick_model() -> list[str]:
+  """docs/quick_model.md: `paper_cpu` at its best checkpoint on the embedded clevr set."""
+  d = _load(QUICK)
+  cells = [f"{fmt.format(_mean(d, m))} ± {fmt.format(_stderr(d, m))}" for m, fmt in QUICK_COLUMNS]
+  rows = [QUICK_HEADER, "|---|---|---|---|---|---|---|---|---|---|---|",
+          f"| paper_cpu, 6500 steps (current; best checkpoint, step {d['checkpoint']['step']}) | "
+          f"{' | '.join(cells)} | {_mean(d, 'active_slots'):.2f} / {_mean(d, 'num_objects'):.2f} |"]
+  return rows + ["", f"Split: `{d['split']}` as it was then named, now the development split; "
+                 f"{d['num_scenes']} scenes, {d['image_size'][0]} px. ± : the standard error over "
+                 "the scenes. Measured on the project's 2-core CPU (the file records no machine).",
+                 _files_line([QUICK])]
+
+
+GPU_FIGURES = "gpu_h100_figures.txt"
+GPU_RUNS = (("paper config through `main` (host batches, validation of 20 scenes every 500 steps)",
+             "gpu_h100_paper_metrics.jsonl"),
+            ("`scene` through `main` (the README's training command)", "gpu_h100_fast_metrics.jsonl"))
+
+
+def _gpu_bench_row() -> tuple[list[str], list[str]]:
+  """The device lines and the paper_batch row of experiments/gpu_figures.sh's summary."""
+  path = os.path.join(RESULTS, GPU_FIGURES)
+  try:
+    with open(path, encoding="utf-8") as f:
+      lines = [line.strip() for line in f]
+  except OSError as e:
+    raise TableError(f"experiments/results/{GPU_FIGURES}: cannot read ({e.strerror})") from None
+  rows = [line for line in lines if line.startswith("| paper_batch |")]
+  if len(rows) != 1:
+    raise TableError(f"experiments/results/{GPU_FIGURES}: not one paper_batch row")
+  return lines[1:3], [c.strip() for c in rows[0].strip("|").split("|")]
+
+
+def _gpu_run(name: str) -> str:
+  """Steps per second between validations and the last logged step of a run's metrics.jsonl."""
+  path = os.path.join(RESULTS, name)
+  try:
+    with open(path, encoding="utf-8") as f:
+      records = [json.loads(line) for line in f if line.strip()]
+  except OSError as e:
+    raise TableError(f"experiments/results/{name}: cannot read ({e.strerror})") from None
+  train = [r for r in records if r["kind"] == "train"]
+  validated = {r["step"] for r in records if r["kind"] == "val"}
+  # The first window holds the compile; a window that follows a validation holds that validation.
+  rates = [r["steps_per_sec"] for r in train[1:] if r["step"] - (train[1]["step"] - train[0]["step"])
+           not in validated]
+  low, *_, high = statistics.quantiles(rates, n=10)
+  minutes, seconds = divmod(round(train[-1]["wall_s"]), 60)
+  return (f"{low:.1f}–{high:.1f} steps/s between validations (10th–90th percentile over "
+          f"{len(rates)} windows of 50 steps); step {train[-1]['step']} logged after {minutes} min "
+          f"{seconds} s, the first {train[0]['step']} steps (compile included) "
+          f"{train[0]['wall_s']:.0f} s")
+
+
+def gpu_figures() -> list[str]:
+  """docs/usage.md: one H100 against the 2-core CPU, from experiments/gpu_figures.sh's files."""
+  device, cells = _gpu_bench_row()
+  step_s, rays_s, peak, mfu = float(cells[1]), int(cells[3]), float(cells[6]), cells[7]
+  cpu = _bench_entry(_bench(), "paper_batch")
+  rays = f"{rays_s:,}".replace(",", " ")
+  rows = ["| what | H100 | the 2-core CPU |", "|---|---|---|",
+          f"| paper step (`bench.py --configs=paper_batch`: {cpu['batch_scenes']} scenes × "
+          f"{cpu['rays_per_scene']} rays × {cpu['num_samples']} samples) | **{step_s:.4f} s** "
+          f"({1 / step_s:.1f} steps/s, {rays} rays/s, MFU {mfu} of a measured "
+          f"{peak / 1000:.1f} TFLOP/s fp32 matmul) | {cpu['step_s_median']:.2f} s "
+          f"(`results/bench_cpu.json`, {cpu['measured']['date'][:10]}) |"]
+  rows += [f"| {what} | {_gpu_run(name)} | — |" for what, name in GPU_RUNS]
+  names = [GPU_FIGURES] + [name for _, name in GPU_RUNS] + ["bench_cpu.json"]
+  return rows + ["", f"Device, memory, driver: {device[0]}; {device[1]}.", _files_line(names)]
+
+
 TABLES: dict[str, Callable[[], list[str]]] = {
     "fast_seeds": fast_seeds,
     "fast_seeds_trained": fast_seeds_trained,
     "fast_average_paired": fast_average_paired,
+    "bench_allocators": bench_allocators,
+    "bench_memory": bench_memory,
+    "quick_model": quick_model,
+    "gpu_figures": gpu_figures,
 }
 
 
