@@ -464,7 +464,7 @@ def evaluate_split(config: ml_collections.ConfigDict, workdir: str, *, split: st
       "parameters": run.parameters,
       "quirks": {"lpips_quirk": bool(lpips_quirk), "nv_ari_last_view": bool(nv_ari_last_view)},
       "lpips_net": net,
-      # Adaptive rendering (issue #7) approximates the plain path; record that it was used.
+      # Adaptive rendering approximates the plain path; record that it was used.
       "renderer": ({k: run.config.render[k] for k in run.config.render if k.startswith("adaptive")}
                    if run.config.render.get("adaptive", False) else "plain"),
       # A metric of a run rendered otherwise than it was trained (e.g. more samples per ray)

@@ -362,13 +362,13 @@ class SlotLifter(nn.Module):
                        source_cam_to_world: jax.Array, source_intrinsics: jax.Array,
                        ray_origins: jax.Array, ray_directions: jax.Array, z: jax.Array,
                        last_delta: Optional[jax.Array] = None, locality=False) -> RenderOutput:
-    """The coarse pass at evaluation at given depths z [B, R, S'] (adaptive rendering, issue #7).
+    """The coarse pass at evaluation at given depths z [B, R, S'] (adaptive rendering).
 
     With z = the evaluation grid and last_delta None this is `render_rays(train=False)`. The
     adaptive renderer (slotlifter_jax.rendering.adaptive) gives a window of that grid, S' ≤ S
     samples, and last_delta [B, R], the grid δ of the window's last sample. Models with a fine
     pass (DTU, ScanNet) are refused: their fine depths come from the coarse weights of the whole
-    ray, which a window does not have (out of scope for issue #7).
+    ray, which a window does not have (out of scope for adaptive rendering).
     """
     if self.num_fine_samples > 0:
       raise ValueError(f"render_at_depths: the model has a fine pass (num_fine_samples="

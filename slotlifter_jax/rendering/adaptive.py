@@ -1,4 +1,5 @@
-"""Adaptive full-view rendering: the allocation decoder only where a scene needs it (issue #7).
+"""Adaptive full-view rendering: the allocation decoder only where a scene needs it
+(experiments/journal/2026-11.md, "Adaptive full-view rendering").
 
 Vocabulary (docs/method.md §0): H×W image, S samples of the evaluation grid
 (`geometry.stratified_depths` without jitter, the plain path's z), Wn window samples
@@ -449,7 +450,7 @@ class AdaptiveSceneRenderer:
 
 def make_scene_renderer(model, config):
   """The renderer the eval mode uses: `AdaptiveSceneRenderer` when `render.adaptive` is on
-  (issue #7; same `render` signature and result), else `views.SceneRenderer` (every pixel on
+  (same `render` signature and result), else `views.SceneRenderer` (every pixel on
   the whole sample grid). Validation during training keeps SceneRenderer, so model selection is
   exact. The switch lives here, not in views.py, because this module builds on views.py:
   the import then runs one way."""

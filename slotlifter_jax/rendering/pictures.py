@@ -32,7 +32,7 @@ thin bar under the frames grows with the azimuth.
 Text is drawn with PIL's default font (what `ImageDraw.text` uses without a font).
 
 With `render.adaptive` on, panels and orbits are rendered adaptively
-(slotlifter_jax.rendering.adaptive, issue #7); the per-slot renderings of a windowed pixel then
+(slotlifter_jax.rendering.adaptive); the per-slot renderings of a windowed pixel then
 composite that pixel's window.
 """
 

@@ -69,7 +69,7 @@ def render_cameras(render_chunk, *, cam_to_world, intrinsics, height: int, width
   supersample S > 1: each entry is the mean of S×S rays per pixel (`geometry.subpixel_offsets`),
   the footprint average that the embedded generator records as a pixel's colour; S² times the
   work. A model trained on centre rays gains little from it (experiments/journal/2026-11.md,
-  "Twenty-fourth round").
+  "what one ray per pixel can reach").
   """
   centres = geometry.image_pixels(height, width).reshape(-1, 2)  # [H·W, 2]
   offsets = geometry.subpixel_offsets(supersample)
