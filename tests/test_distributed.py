@@ -164,12 +164,15 @@ def test_two_processes_train_what_one_process_with_two_devices_trains(runs):
 def test_process_zero_alone_writes_and_the_checkpoint_is_complete(runs):
   two = runs["two"]
   assert sorted(os.listdir(two)) == sorted(os.listdir(runs["one"])) == [
-      "checkpoints", "config.json", "emergence.json", "metrics.jsonl", "tb", "val"]
+      "checkpoints", "config.json", "emergence.json", "machines.jsonl", "metrics.jsonl", "tb",
+      "val"]
   # One of each file: no per-process copies, no temporary leftovers.
-  for name in ("metrics.jsonl", "config.json", "emergence.json"):
+  for name in ("metrics.jsonl", "config.json", "emergence.json", "machines.jsonl"):
     found = [os.path.join(d, f) for d, _, files in os.walk(two) for f in files if f == name]
     assert found == [os.path.join(two, name)], found
   assert len(os.listdir(os.path.join(two, "tb"))) == 1
+  with open(os.path.join(two, "machines.jsonl")) as f:  # process 0's one training session
+    assert len(f.readlines()) == 1
   assert sorted(os.listdir(os.path.join(two, "val"))) == ["step_0000003.png", "step_0000006.png"]
   with open(os.path.join(two, "config.json")) as f, \
       open(os.path.join(runs["one"], "config.json")) as g:
