@@ -112,6 +112,9 @@ def base_config() -> ml_collections.ConfigDict:
   d.plain_background = False
   d.plain_objects = False  # and the chairs in one colour each, legs included
   d.no_walls = False  # and no walls: the floor runs to the horizon, as in the clevr family
+  # and each chair as drawn ("chairs"), its legs filled in ("solid") or one box ("boxes"): the
+  # rungs between thin parts and compact objects (data/layout.py, ROOM_OBJECTS)
+  d.room_objects = "chairs"
   d.novel_ray_prob = 0.75  # probability that a scene's rays come from novel views only
   # "uniform" (paper) or "contrast": a share `contrast_mix` of the rays drawn towards pixels far
   # from their view's median colour (data/pipeline.py says why and what it changes).

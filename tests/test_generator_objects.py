@@ -214,3 +214,65 @@ def test_no_walls_draws_the_same_rooms_without_walls():
   assert np.all(open_room.depth[walled.label == 0] >= walled.depth[walled.label == 0] - 1e-4)
   with pytest.raises(ValueError, match="no_walls"):
     generator.check_object_options("clevr", no_walls=True)
+
+
+def _corners(part):
+  """[8, 3] world corners of a yawed box primitive."""
+  import itertools
+  import numpy as np
+  c, s = np.cos(part.yaw), np.sin(part.yaw)
+  rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+  signs = np.array(list(itertools.product((-1, 1), repeat=3)), np.float64)
+  return np.asarray(part.centre) + (signs * np.asarray(part.half_size)) @ rot.T
+
+
+def _inside(points, box, tol=1e-9):
+  """Whether world points lie inside a yawed box primitive (its own frame, by hand)."""
+  import numpy as np
+  c, s = np.cos(box.yaw), np.sin(box.yaw)
+  local = (points - np.asarray(box.centre)) @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+  return bool(np.all(np.abs(local) <= np.asarray(box.half_size) + tol))
+
+
+@pytest.mark.parametrize("form", ["solid", "boxes"])
+def test_room_objects_draw_the_same_rooms_with_filled_in_chairs(form):
+  import numpy as np
+  from slotlifter_jax.data import embedded
+  from slotlifter_jax import defaults
+  # Scene 2 of this stream draws four chairs.
+  draw = lambda f: generator.generate_scene(
+      generator.scene_rng(seed=5, family="room", split="train", index=2), family="room", views=2,
+      image_size=32, room_objects=f)
+  chairs, shaped = draw("chairs"), draw(form)
+  # The same scenes: cameras, lights, floor, walls, and each object's place, yaw and size.
+  np.testing.assert_array_equal(shaped.cam_to_world, chairs.cam_to_world)
+  assert shaped.spec.lights == chairs.spec.lights and shaped.spec.floor == chairs.spec.floor
+  assert shaped.spec.walls == chairs.spec.walls and shaped.attempts == chairs.attempts
+  for a, b in zip(shaped.spec.objects, chairs.spec.objects):
+    assert (a.label, a.position, a.yaw, a.size, a.bounding_radius) == (
+        b.label, b.position, b.yaw, b.size, b.bounding_radius)
+    w, d, height = b.size
+    if form == "boxes":
+      (box,) = a.parts
+      np.testing.assert_allclose(box.half_size, (w / 2, d / 2, height / 2), rtol=0, atol=1e-12)
+      assert box.centre[2] == pytest.approx(height / 2)
+    else:
+      assert len(a.parts) == 2 and a.parts[1] == b.parts[1]  # the same back
+      base = a.parts[0]
+      # The block reaches from the floor to the seat's top, under the whole seat.
+      seat_top = b.parts[0].centre[2] + b.parts[0].half_size[2]
+      assert base.centre[2] - base.half_size[2] == pytest.approx(0.0, abs=1e-12)
+      assert base.centre[2] + base.half_size[2] == pytest.approx(seat_top)
+    # Every corner of every part of the chair lies inside the new shape: it only fills in.
+    for part in b.parts:
+      assert any(_inside(_corners(part), p) for p in a.parts), part
+  # Filling in only adds surface: every pixel where some chair shows, some object shows.
+  assert np.all(shaped.label[chairs.label > 0] > 0)
+  with pytest.raises(ValueError, match="room_objects") as info:
+    generator.check_object_options("clevr", room_objects=form)
+  assert info.value.field == "room_objects"
+  with pytest.raises(ValueError, match="room_objects"):
+    generator.check_object_options("room", room_objects="tables")
+  d = defaults.base_config().data
+  d.family, d.room_objects = "room", form
+  assert os.path.basename(embedded.dataset_dir(d, seed=0)).endswith("-" + form)

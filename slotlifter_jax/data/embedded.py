@@ -29,14 +29,16 @@ def cache_root() -> str:
 
 
 def object_options(data_config) -> dict:
-  """min_objects, max_objects, object_scale, plain_background, plain_objects, no_walls of a data
-  config; configs saved before these fields existed get the defaults (0, 0, 1.0, False ×3)."""
+  """min_objects, max_objects, object_scale, plain_background, plain_objects, no_walls,
+  room_objects of a data config; configs saved before these fields existed get the defaults
+  (0, 0, 1.0, False ×3, "chairs")."""
   d = data_config
   return {"min_objects": int(d.get("min_objects", 0)), "max_objects": int(d.get("max_objects", 0)),
           "object_scale": float(d.get("object_scale", 1.0)),
           "plain_background": bool(d.get("plain_background", False)),
           "plain_objects": bool(d.get("plain_objects", False)),
-          "no_walls": bool(d.get("no_walls", False))}
+          "no_walls": bool(d.get("no_walls", False)),
+          "room_objects": str(d.get("room_objects", "chairs"))}
 
 
 def num_dev_scenes(data_config) -> int:
@@ -65,6 +67,8 @@ def dataset_dir(data_config, *, seed: int) -> str:
       name += "-plainobj"
     if objects["no_walls"]:
       name += "-nowalls"
+    if objects["room_objects"] != "chairs":
+      name += "-" + objects["room_objects"]
   return os.path.join(cache_root(), name)
 
 

@@ -20,7 +20,7 @@ from slotlifter_jax.data.layout import (
     CLEVR_MAX_BOUNDING_RADIUS, CLEVR_NUM_OBJECTS, CLEVR_SHAPES, CLEVR_SIZES, CLEVR_XY_RANGE,
     FAMILIES, FOCAL_X_PER_WIDTH, FOCAL_Y_PER_HEIGHT, GENERATOR_VERSION, LABEL_GREY_STEP,
     MAX_LAYOUT_DRAWS, MAX_OBJECT_SCALE, MAX_OBJECTS, MIN_GAP, MIN_VISIBLE_PIXELS_128,
-    PRIMITIVE_KINDS, ROOM_HALF_SIZE, ROOM_NUM_CHAIRS, ROOM_TEXTURES, ROOM_XY_RANGE, SCENE_SCALE,
+    PRIMITIVE_KINDS, ROOM_HALF_SIZE, ROOM_NUM_CHAIRS, ROOM_OBJECTS, ROOM_TEXTURES, ROOM_XY_RANGE, SCENE_SCALE,
     SPLIT_STREAMS, SPLITS, SUBSETS, WOOD_COLOURS, CameraSpec, Light, Material, ObjectOptionError, Primitive,
     SceneObject, SceneSpec, camera_to_world, check_object_options, is_default_objects,
     label_grey_levels, min_visible_pixels, normalised_intrinsics, num_source_views_for,

@@ -50,6 +50,11 @@ BACKGROUND_LABEL = 0
 # Label l is drawn as grey (17·l, 17·l, 17·l); PIL's RGB→L conversion maps it back to 17·l exactly.
 LABEL_GREY_STEP = 17
 MAX_OBJECTS = {"clevr": 7, "room": 4}
+# The room family's object shapes, a rung of the room ladder each (docs/method.md §3.5): "chairs"
+# (seat, back and four legs), "solid" (the legs and the space between them one block under the
+# seat: no thin parts but the back), "boxes" (one box of the chair's footprint and full height).
+# Every form makes the same random draws, so a scene differs between forms only in its shapes.
+ROOM_OBJECTS = ("chairs", "solid", "boxes")
 # An object must cover at least this many pixels of the source view at 128×128 (scaled by area).
 MIN_VISIBLE_PIXELS_128 = 20
 
@@ -286,7 +291,8 @@ class ObjectOptionError(ValueError):
 
 def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0,
                          object_scale: float = 1.0, plain_background: bool = False,
-                         plain_objects: bool = False, no_walls: bool = False) -> None:
+                         plain_objects: bool = False, no_walls: bool = False,
+                         room_objects: str = "chairs") -> None:
   """ObjectOptionError (a ValueError) naming the offending field unless the options describe a
   set this generator can draw."""
   if family not in FAMILIES:
@@ -309,6 +315,12 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
     if on and family != "room":
       raise ObjectOptionError(name, f"{name} applies to the room family only (the {family} "
                                     f"set is plain already)")
+  if room_objects not in ROOM_OBJECTS:
+    raise ObjectOptionError("room_objects", f"room_objects must be one of {ROOM_OBJECTS}, got "
+                                            f"{room_objects!r}")
+  if room_objects != "chairs" and family != "room":
+    raise ObjectOptionError("room_objects", f"room_objects applies to the room family only, got "
+                                            f"{room_objects!r} for {family}")
   if not 0.0 < object_scale <= MAX_OBJECT_SCALE:
     raise ObjectOptionError("object_scale", f"object_scale must lie in (0, {MAX_OBJECT_SCALE}] "
                                             f"(larger objects no longer fit the default scene "
@@ -317,9 +329,10 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
 
 def is_default_objects(family: str, min_objects: int = 0, max_objects: int = 0,
                        object_scale: float = 1.0, plain_background: bool = False,
-                       plain_objects: bool = False, no_walls: bool = False) -> bool:
+                       plain_objects: bool = False, no_walls: bool = False,
+                       room_objects: str = "chairs") -> bool:
   """True when the options draw the family's default set (explicit 5 and 7 count as default)."""
-  return not (plain_background or plain_objects or no_walls) and (
+  return not (plain_background or plain_objects or no_walls) and room_objects == "chairs" and (
       object_count_range(family, min_objects, max_objects) == object_count_range(family)
       and object_scale == 1.0)
 
@@ -381,8 +394,9 @@ def _random_rgb(rng: np.random.Generator, value_range=(0.3, 0.9),
 
 
 def _chair(rng: np.random.Generator, label: int, xy: np.ndarray, yaw: float,
-           dims: dict) -> SceneObject:
-  """A chair of six boxes in its own frame (x width, y depth with the back at −y, z up)."""
+           dims: dict, form: str = "chairs") -> SceneObject:
+  """A chair of six boxes in its own frame (x width, y depth with the back at −y, z up), or of
+  the `form` (ROOM_OBJECTS) with the same footprint and height."""
   w, d, seat_top = dims["seat_width"], dims["seat_depth"], dims["seat_height"]
   seat_t, leg_t, back_t, back_h = (dims["seat_thickness"], dims["leg_thickness"],
                                    dims["back_thickness"], dims["back_height"])
@@ -394,16 +408,23 @@ def _chair(rng: np.random.Generator, label: int, xy: np.ndarray, yaw: float,
             float(local[2]))
 
   seat_z = seat_top - seat_t / 2
-  parts = [Primitive("box", world((0.0, 0.0, seat_z)), (w / 2, d / 2, seat_t / 2), yaw),
-           Primitive("box", world((0.0, -d / 2 + back_t / 2, seat_top + back_h / 2)),
-                     (w / 2, back_t / 2, back_h / 2), yaw)]
-  leg_h = seat_top - seat_t
-  for sx in (-1, 1):
-    for sy in (-1, 1):
-      lx = sx * (w / 2 - inset - leg_t / 2)
-      ly = sy * (d / 2 - inset - leg_t / 2)
-      parts.append(Primitive("box", world((lx, ly, leg_h / 2)), (leg_t / 2, leg_t / 2, leg_h / 2),
-                             yaw))
+  back = Primitive("box", world((0.0, -d / 2 + back_t / 2, seat_top + back_h / 2)),
+                   (w / 2, back_t / 2, back_h / 2), yaw)
+  if form == "boxes":
+    height = seat_top + back_h
+    parts = [Primitive("box", world((0.0, 0.0, height / 2)), (w / 2, d / 2, height / 2), yaw)]
+  elif form == "solid":
+    parts = [Primitive("box", world((0.0, 0.0, seat_top / 2)), (w / 2, d / 2, seat_top / 2), yaw),
+             back]
+  else:
+    parts = [Primitive("box", world((0.0, 0.0, seat_z)), (w / 2, d / 2, seat_t / 2), yaw), back]
+    leg_h = seat_top - seat_t
+    for sx in (-1, 1):
+      for sy in (-1, 1):
+        lx = sx * (w / 2 - inset - leg_t / 2)
+        ly = sy * (d / 2 - inset - leg_t / 2)
+        parts.append(Primitive("box", world((lx, ly, leg_h / 2)),
+                               (leg_t / 2, leg_t / 2, leg_h / 2), yaw))
   rgb = _random_rgb(rng)
   texture = ROOM_TEXTURES[int(rng.integers(0, len(ROOM_TEXTURES)))]
   rgb2 = _random_rgb(rng) if rng.uniform() < 0.5 else tuple(int(v * 0.45) for v in rgb)
@@ -419,13 +440,15 @@ def _chair(rng: np.random.Generator, label: int, xy: np.ndarray, yaw: float,
   radius = math.hypot(w / 2, d / 2)
   return SceneObject(
       label=label, shape="chair", colour="#%02x%02x%02x" % rgb, material_name="matte",
-      size=[w, d, seat_top + back_h], position=parts[0].centre, yaw=yaw, bounding_radius=radius,
+      size=[w, d, seat_top + back_h], position=world((0.0, 0.0, seat_z)), yaw=yaw,
+      bounding_radius=radius,
       parts=tuple(parts), material=material, leg_material=leg_material)
 
 
 def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
                        max_objects: int = 0, plain_background: bool = False,
-                       plain_objects: bool = False, no_walls: bool = False) -> SceneSpec:
+                       plain_objects: bool = False, no_walls: bool = False,
+                       room_objects: str = "chairs") -> SceneSpec:
   """1–4 primitive chairs on a textured floor inside four walls (docs/method.md §3.5).
 
   `min_objects`, `max_objects` (0: 1 and 4) narrow the chair count; the defaults draw as before.
@@ -433,8 +456,10 @@ def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
   walls in their base colour, untextured: the rung that tells a texture problem from a chair one.
   `plain_objects`: likewise each chair in its one base colour, legs included. `no_walls`: the
   same scenes without walls, the floor running to the horizon as in the clevr family.
+  `room_objects` (ROOM_OBJECTS): the same scenes with each chair's legs filled in ("solid") or
+  each chair one box of its footprint and height ("boxes").
   """
-  check_object_options("room", min_objects, max_objects)
+  check_object_options("room", min_objects, max_objects, room_objects=room_objects)
   lo, hi = object_count_range("room", min_objects, max_objects)
   while True:
     n = int(rng.integers(lo, hi + 1))
@@ -449,7 +474,8 @@ def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
     if xy is not None:
       break
   yaws = rng.uniform(0.0, 2 * math.pi, size=n)
-  objects = tuple(_chair(rng, i + 1, xy[i], float(yaws[i]), dims[i]) for i in range(n))
+  objects = tuple(_chair(rng, i + 1, xy[i], float(yaws[i]), dims[i], room_objects)
+                  for i in range(n))
   if rng.uniform() < 0.5:
     base = WOOD_COLOURS[int(rng.integers(0, len(WOOD_COLOURS)))]
     base = tuple(int(np.clip(v + rng.integers(-12, 13), 0, 255)) for v in base)

@@ -69,13 +69,15 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
                    supersample: int = 2, max_attempts: int = 100, min_objects: int = 0,
                    max_objects: int = 0, object_scale: float = 1.0,
                    plain_background: bool = False,
-                   plain_objects: bool = False, no_walls: bool = False) -> GeneratedScene:
+                   plain_objects: bool = False, no_walls: bool = False,
+                   room_objects: str = "chairs") -> GeneratedScene:
   """Samples layouts and cameras until every object covers enough pixels of view 0, then renders.
 
   `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
   select an easier set; see `sample_clevr_layout`. `plain_background`, `plain_objects` (room
   only): the same scenes with untextured floor and walls, or chairs; `no_walls` (room only):
-  without the walls (`sample_room_layout`).
+  without the walls; `room_objects` (room only): chairs, solid chairs or boxes
+  (`sample_room_layout`).
 
   Renders on the CPU backend, so the files do not depend on the accelerator (if any) of the
   calling process, and a training process never shares its accelerator memory with the generator.
@@ -86,7 +88,8 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
                            supersample=supersample, max_attempts=max_attempts,
                            min_objects=min_objects, max_objects=max_objects,
                            object_scale=object_scale, plain_background=plain_background,
-                           plain_objects=plain_objects, no_walls=no_walls)
+                           plain_objects=plain_objects, no_walls=no_walls,
+                           room_objects=room_objects)
 
 
 def _cpu_device():
@@ -101,7 +104,7 @@ def draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size:
                supersample: int = 2, max_attempts: int = 100, min_objects: int = 0,
                max_objects: int = 0, object_scale: float = 1.0,
                plain_background: bool = False, plain_objects: bool = False,
-               no_walls: bool = False):
+               no_walls: bool = False, room_objects: str = "chairs"):
   """The layout and cameras `generate_scene` draws from `rng`, without the final render:
   (spec, cameras, cam_to_world [N, 4, 4], attempts). Scene edits (data/scene_edits.py) re-draw
   a stored scene's SceneSpec with it, from the seed its dataset.json records."""
@@ -110,7 +113,8 @@ def draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size:
                        supersample=supersample, max_attempts=max_attempts,
                        min_objects=min_objects, max_objects=max_objects,
                        object_scale=object_scale, plain_background=plain_background,
-                       plain_objects=plain_objects, no_walls=no_walls)
+                       plain_objects=plain_objects, no_walls=no_walls,
+                       room_objects=room_objects)
 
 
 def render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
@@ -124,20 +128,33 @@ def render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
 def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                 supersample: int, max_attempts: int, min_objects: int, max_objects: int,
                 object_scale: float, plain_background: bool = False,
-                plain_objects: bool = False, no_walls: bool = False):
+                plain_objects: bool = False, no_walls: bool = False,
+                room_objects: str = "chairs"):
   check_object_options(family, min_objects, max_objects, object_scale, plain_background,
-                       plain_objects, no_walls)
+                       plain_objects, no_walls, room_objects)
   options = render_options(family, supersample, walls=not no_walls)
   k32 = jnp.asarray(uorf_intrinsics(image_size), jnp.float32)
   threshold = min_visible_pixels(image_size)
   for attempt in range(1, max_attempts + 1):
     if family == "clevr":
-      spec = sample_clevr_layout(rng, min_objects=min_objects, max_objects=max_objects,
-                                 object_scale=object_scale)
+      spec = shaped = sample_clevr_layout(rng, min_objects=min_objects,
+                                          max_objects=max_objects, object_scale=object_scale)
     else:
+      # Visibility is judged on the chairs in every form, and the form is drawn from a twin of
+      # the chairs' random state: a box hides more of its neighbours and shows more of itself,
+      # so judging each form on its own would redraw different scenes for different forms.
+      state = rng.bit_generator.state
       spec = sample_room_layout(rng, min_objects=min_objects, max_objects=max_objects,
                                 plain_background=plain_background,
                                 plain_objects=plain_objects, no_walls=no_walls)
+      shaped = spec
+      if room_objects != "chairs":
+        twin = np.random.Generator(type(rng.bit_generator)())
+        twin.bit_generator.state = state
+        shaped = sample_room_layout(twin, min_objects=min_objects, max_objects=max_objects,
+                                    plain_background=plain_background,
+                                    plain_objects=plain_objects, no_walls=no_walls,
+                                    room_objects=room_objects)
     cameras = tuple(sample_cameras(rng, views))
     c2w = np.stack([camera_to_world(c) for c in cameras])
     arrays = scene_arrays(spec)
@@ -147,7 +164,7 @@ def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size
                               intrinsics=k32, image_size=image_size, options=options)
     counts = np.bincount(np.asarray(labels[0]).ravel(), minlength=len(spec.objects) + 1)
     if np.all(counts[1:len(spec.objects) + 1] >= threshold):
-      return spec, cameras, c2w, attempt
+      return shaped, cameras, c2w, attempt
   raise RuntimeError(f"no {family} layout with every object visible after {max_attempts} tries")
 
 
@@ -166,12 +183,13 @@ def _render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
 def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_size: int,
                     supersample: int, max_attempts: int, min_objects: int, max_objects: int,
                     object_scale: float, plain_background: bool = False,
-                    plain_objects: bool = False, no_walls: bool = False) -> GeneratedScene:
+                    plain_objects: bool = False, no_walls: bool = False,
+                    room_objects: str = "chairs") -> GeneratedScene:
   spec, cameras, c2w, attempts = _draw_scene(
       rng, family=family, views=views, image_size=image_size, supersample=supersample,
       max_attempts=max_attempts, min_objects=min_objects, max_objects=max_objects,
       object_scale=object_scale, plain_background=plain_background, plain_objects=plain_objects,
-      no_walls=no_walls)
+      no_walls=no_walls, room_objects=room_objects)
   rgb, label, depth = _render_scene(spec, c2w, image_size=image_size, supersample=supersample)
   return GeneratedScene(spec=spec, cameras=cameras, cam_to_world=c2w,
                         intrinsics=uorf_intrinsics(image_size), rgb=rgb, label=label, depth=depth,
@@ -216,6 +234,7 @@ class _SceneTask:
   plain_background: bool = False
   plain_objects: bool = False
   no_walls: bool = False
+  room_objects: str = "chairs"
 
 
 def _write_scene(task: _SceneTask) -> dict:
@@ -225,7 +244,8 @@ def _write_scene(task: _SceneTask) -> dict:
                          supersample=task.supersample, min_objects=task.min_objects,
                          max_objects=task.max_objects, object_scale=task.object_scale,
                          plain_background=task.plain_background,
-                         plain_objects=task.plain_objects, no_walls=task.no_walls)
+                         plain_objects=task.plain_objects, no_walls=task.no_walls,
+                         room_objects=task.room_objects)
   k_norm = normalised_intrinsics(scene.intrinsics, task.image_size)
   stems = []
   for a in range(task.views):
@@ -260,7 +280,8 @@ def _worker_init() -> None:
 def _split_header(*, family: str, split: str, seed: int, views: int, image_size: int,
                   num_scenes: int, supersample: int, min_objects: int = 0, max_objects: int = 0,
                   object_scale: float = 1.0, plain_background: bool = False,
-                  plain_objects: bool = False, no_walls: bool = False) -> dict:
+                  plain_objects: bool = False, no_walls: bool = False,
+                  room_objects: str = "chairs") -> dict:
   k = uorf_intrinsics(image_size)
   header = {
       "format": "slotlifter_jax.generated", "generator_version": GENERATOR_VERSION,
@@ -288,7 +309,7 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
   # Only non-default sets record their object options, so default dataset.json files are unchanged
   # (and _existing_split_matches tells the two apart by the key's presence).
   if not is_default_objects(family, min_objects, max_objects, object_scale, plain_background,
-                            plain_objects, no_walls):
+                            plain_objects, no_walls, room_objects):
     lo, hi = object_count_range(family, min_objects, max_objects)
     header["objects"] = {"min_objects": lo, "max_objects": hi,
                          "object_scale": float(object_scale)}
@@ -298,6 +319,8 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
       header["objects"]["plain_objects"] = True
     if no_walls:
       header["objects"]["no_walls"] = True
+    if room_objects != "chairs":
+      header["objects"]["room_objects"] = room_objects
   return header
 
 
@@ -319,7 +342,7 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
                      overwrite: bool = False, supersample: int = 2, min_objects: int = 0,
                      max_objects: int = 0, object_scale: float = 1.0,
                      plain_background: bool = False, plain_objects: bool = False,
-                     no_walls: bool = False) -> dict:
+                     no_walls: bool = False, room_objects: str = "chairs") -> dict:
   """Writes <out_dir>/<subset>_{train,val,dev,test} and returns a summary (seconds per split).
 
   `num_dev` (None: as many as `num_test`) scenes of the development split, the former test split
@@ -329,7 +352,8 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
   select an easier set (`sample_clevr_layout`); its dataset.json headers record them under
   "objects", and each scene's entry lists its objects. The folder names stay the family's.
   `plain_background`, `plain_objects` (room only) draw the same scenes with untextured floor and
-  walls, or chairs; `no_walls` (room only) without the walls.
+  walls, or chairs; `no_walls` (room only) without the walls; `room_objects` (room only) with
+  solid chairs or boxes in place of the chairs (layout.ROOM_OBJECTS).
 
   A split whose folder already holds a dataset.json with the same generation parameters is kept
   as it is (this resumes an interrupted run); any other non-empty split folder is an error unless
@@ -345,10 +369,10 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
   if views < 1 or image_size < 8:
     raise ValueError(f"need views ≥ 1 and image_size ≥ 8, got {views}, {image_size}")
   check_object_options(family, min_objects, max_objects, object_scale, plain_background,
-                       plain_objects, no_walls)
+                       plain_objects, no_walls, room_objects)
   objects = dict(min_objects=min_objects, max_objects=max_objects, object_scale=object_scale,
                  plain_background=plain_background, plain_objects=plain_objects,
-                 no_walls=no_walls)
+                 no_walls=no_walls, room_objects=room_objects)
   subset = SUBSETS[family]
   if num_dev is None:
     num_dev = num_test
