@@ -49,3 +49,12 @@ def test_unknown_or_unclosed_markers_are_errors(tmp_path):
 
 def test_the_command_line_check_passes():
   assert tables.main(["--check"]) == 0
+
+
+def test_the_held_out_table_refuses_a_headline_of_another_split(tmp_path, monkeypatch):
+  import json
+  # A headline file of the development split must never fill the held-out table.
+  (tmp_path / tables.HEADLINE_CLEVR).write_text(json.dumps({"split": "dev", "seeds": []}))
+  monkeypatch.setattr(tables, "RESULTS", str(tmp_path))
+  with pytest.raises(tables.TableError, match="headline_clevr.json: split 'dev'"):
+    tables.clevr_heldout()

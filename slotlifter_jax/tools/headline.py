@@ -8,8 +8,8 @@ Each RUN is a run folder of the training command, evaluated with `--mode=eval --
 Per seed it records FG-ARI, NV-ARI and novel-view PSNR (means and standard errors over the
 split's scenes), the checkpoint evaluated, the attempts (1 + the restarts the run made), the
 training wall time in minutes (restarts included: `wall_s` of the run's last training record),
-the hosts it trained on (DIR/machines.jsonl) and the commit of the evaluation; then the mean ±
-sample standard deviation over the seeds, and the split's name. A run without that evaluation is
+the hosts and commits it trained on (DIR/machines.jsonl) and the commit of the evaluation; then
+the mean ± sample standard deviation over the seeds (null for one seed), and the split's name. A run without that evaluation is
 an error naming the file: a headline never mixes splits or leaves a seed out silently.
 """
 
@@ -51,7 +51,7 @@ def seed_row(run: str, split: str) -> dict:
   train = emergence.latest_records(emergence.load_records(log), "train") if os.path.exists(
       log) else []
   wall_s = max((float(r["wall_s"]) for r in train if "wall_s" in r), default=math.nan)
-  hosts = []
+  hosts, train_commits = [], []
   machines = os.path.join(run, "machines.jsonl")
   if os.path.exists(machines):
     with open(machines) as f:
@@ -61,11 +61,13 @@ def seed_row(run: str, split: str) -> dict:
             "device_kind", "")
         if name and name not in hosts:
           hosts.append(name)
+        if host.get("git_commit") and host["git_commit"] not in train_commits:
+          train_commits.append(host["git_commit"])
   checkpoint = evaluation.get("checkpoint", {})
   row = dict(run=run, seed=first_seed, final_seed=int(config["seed"]),
              attempts=len(attempts) + 1,
              wall_minutes=None if math.isnan(wall_s) else round(wall_s / 60.0, 1),
-             hosts=hosts, checkpoint=checkpoint,
+             hosts=hosts, train_commits=train_commits, checkpoint=checkpoint,
              eval_commit=evaluation.get("provenance", {}).get("git_commit"))
   for k in KEYS:
     row[k] = float(metrics[k]["mean"])
@@ -79,8 +81,9 @@ def headline(runs: list[str], *, name: str, split: str) -> dict:
   for k in KEYS:
     values = [r[k] for r in rows]
     mean = sum(values) / len(values)
+    # One seed has no spread: null in the file (JSON has no NaN), "n/a" where printed.
     std = math.sqrt(sum((v - mean) ** 2 for v in values) / (len(values) - 1)) if len(
-        values) > 1 else math.nan
+        values) > 1 else None
     summary[k] = dict(mean=mean, std=std)
   return dict(name=name, split=split, num_seeds=len(rows), seeds=rows, summary=summary,
               collapsed_seeds=sum(r["fg_ari"] < 0.5 for r in rows))
@@ -100,14 +103,15 @@ def main(argv=None) -> int:
     return 1
   tmp = args.out + ".partial"
   with open(tmp, "w") as f:
-    json.dump(result, f, indent=1, sort_keys=True, allow_nan=True)
+    json.dump(result, f, indent=1, sort_keys=True)
     f.write("\n")
   os.replace(tmp, args.out)
   s = result["summary"]
+  show = lambda k, fmt: (f"{fmt.format(s[k]['mean'])} ± "
+                         f"{'n/a' if s[k]['std'] is None else fmt.format(s[k]['std'])}")
   print(f"{args.name} on {args.split}, {result['num_seeds']} seeds: FG-ARI "
-        f"{s['fg_ari']['mean']:.3f} ± {s['fg_ari']['std']:.3f}, NV-ARI {s['nv_ari']['mean']:.3f} "
-        f"± {s['nv_ari']['std']:.3f}, novel PSNR {s['psnr_novel']['mean']:.2f} ± "
-        f"{s['psnr_novel']['std']:.2f} dB → {args.out}")
+        f"{show('fg_ari', '{:.3f}')}, NV-ARI {show('nv_ari', '{:.3f}')}, novel PSNR "
+        f"{show('psnr_novel', '{:.2f}')} dB → {args.out}")
   return 0
 
 
