@@ -33,6 +33,7 @@ import numpy as np
 from tqdm import tqdm
 
 from slotlifter_jax import config_checks
+from slotlifter_jax import edit_scores
 from slotlifter_jax import evaluate
 from slotlifter_jax import multihost
 from slotlifter_jax import vis
@@ -187,7 +188,8 @@ def _world_rotation(config, split: str, index: int, scene: Scene) -> np.ndarray:
 def render_edit(config: ml_collections.ConfigDict, workdir: str, request: Request, *,
                 split: str = "test", scene_indices: Sequence[int] = (0,), checkpoint: str = "",
                 params: str = "average", num_orbit_frames: int = 24,
-                progress: bool = True) -> list[tuple[str, str]]:
+                progress: bool = True,
+                removal: str = edit_scores.REMOVAL) -> list[tuple[str, str]]:
   """Pictures and an orbit GIF of `request` on each chosen scene (module docstring);
   returns [(panel path, orbit path)]."""
   if not 1 <= num_orbit_frames <= pictures.MAX_ORBIT_FRAMES:
@@ -210,12 +212,12 @@ def render_edit(config: ml_collections.ConfigDict, workdir: str, request: Reques
   for i in tqdm(indices, desc=f"edit {split}", unit="scene", disable=not progress):
     scene = run.scenes[i]
     if request.kind == "remove":
-      edit = edits.Edit.remove([request.slot], k)
+      edit = edits.removal_edit(request.slot, k, removal)
     else:
       rot = _world_rotation(run.config, split, i, scene)
       t_model = edits.world_translation(request.by, rotation=rot,
                                         scene_scale=float(run.config.data.scene_scale))
-      edit = edits.Edit.moving(request.slot, k, edits.RigidMove.make(t_model))
+      edit = edits.move_edit(request.slot, k, edits.RigidMove.make(t_model), removal)
     encoded, sources = renderer.encode(run.params, scene)
     cams = dict(cam_to_world=scene.cam_to_world, intrinsics=scene.intrinsics,
                 image_size=scene.image_size)

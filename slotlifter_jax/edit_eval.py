@@ -123,17 +123,18 @@ def _unedited(renderer: EditRenderer, params, manifest: dict, index: int, scene:
 
 
 def _score_one(renderer: EditRenderer, params, u: _Unedited, *, kind: str, label: int, slot: int,
-               translation: Optional[np.ndarray], scale: float, num_slots: int):
+               translation: Optional[np.ndarray], scale: float, num_slots: int,
+               removal: str = edit_scores.REMOVAL):
   """(figures, edited novel views (colour, depth, segmentation), edited ground truth)."""
   scene, novel, src = u.scene, u.novel, list(u.scene.source_indices)
   if kind == "remove":
     spec = scene_edits.remove_object(u.drawn.spec, label)
-    edit = edits.Edit.remove([slot], num_slots)
+    edit = edits.removal_edit(slot, num_slots, removal)
   else:
     spec = scene_edits.translate_object(u.drawn.spec, label, translation)
     t_model = edits.world_translation((translation[0], translation[1], 0.0),
                                       rotation=u.rotation, scene_scale=scale)
-    edit = edits.Edit.moving(slot, num_slots, edits.RigidMove.make(t_model))
+    edit = edits.move_edit(slot, num_slots, edits.RigidMove.make(t_model), removal)
   truth = scene_edits.render(u.drawn, spec)
   edited = renderer.render(params, u.encoded, u.sources, edit,
                            cam_to_world=scene.cam_to_world[novel],
@@ -164,10 +165,12 @@ def _edit_picture(path: str, u: _Unedited, edited: tuple, truth: scene_edits.Gro
 def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str = "test",
                 checkpoint: str = "", params: str = "average", max_scenes: Optional[int] = None,
                 overwrite: bool = False, progress: bool = True,
-                match_iou: float = edit_scores.MATCH_IOU) -> dict:
+                match_iou: float = edit_scores.MATCH_IOU,
+                removal: str = edit_scores.REMOVAL) -> dict:
   """Scores removal and translation of every object of the first scenes (module docstring);
   returns the report it writes. `match_iou` other than MATCH_IOU is for tests of the scoring path
-  on untrained runs; the report records the value used."""
+  on untrained runs; `removal` (rendering.edits.REMOVALS) how a slot leaves its place. The report
+  records the values used."""
   t_start = time.perf_counter()
   out_dir = os.path.join(workdir, "edit", split)
   metrics_path = os.path.join(out_dir, "edit_metrics.json")
@@ -210,7 +213,8 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
           log.append(dict(base, kind=kind, skipped="no translation fits"))
           continue
         figures, edited, truth = _score_one(renderer, run.params, u, kind=kind, label=obj.label,
-                                            slot=slot, translation=t, scale=scale, num_slots=k)
+                                            slot=slot, translation=t, scale=scale, num_slots=k,
+                                            removal=removal)
         records[kind].append(figures)
         moved = {"translation": [float(t[0]), float(t[1]), 0.0]} if kind == "move" else {}
         log.append(dict(base, kind=kind, figures=figures, **moved))
@@ -223,6 +227,7 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
                                           f"{slot} (IoU {iou:.2f}) · step {run.step}")
   report = _report_head(run, split, t_start)
   report["settings"]["match_iou"] = float(match_iou)
+  report["settings"]["removal"] = removal
   for kind in edit_scores.EDIT_KINDS:
     report[kind] = edit_scores.summarize_kind(records[kind], skipped=skipped[kind],
                                               no_translation=no_translation,
@@ -267,15 +272,17 @@ def format_summary(report: dict) -> str:
 
 def run(config: ml_collections.ConfigDict, workdir: str, *, split: str, scenes: str,
         remove_slot: Optional[int], move_slot: Optional[int], by: str, checkpoint: str,
-        params: str, max_scenes: Optional[int], overwrite: bool, orbit_frames: int) -> str:
+        params: str, max_scenes: Optional[int], overwrite: bool, orbit_frames: int,
+        removal: str = edit_scores.REMOVAL) -> str:
   """The `--mode=edit` command: the scores of the split (this module), or with --remove_slot or
   --move_slot one edit of the --scenes (edit.render_edit); returns what it prints."""
   request = edit.parse_request(num_slots=int(config.model.num_slots), remove_slot=remove_slot,
                                move_slot=move_slot, by=by)
   if request is None:
     return format_summary(score_split(config, workdir, split=split, checkpoint=checkpoint,
-                                      params=params, max_scenes=max_scenes, overwrite=overwrite))
+                                      params=params, max_scenes=max_scenes, overwrite=overwrite,
+                                      removal=removal))
   written = edit.render_edit(config, workdir, request, split=split,
                              scene_indices=edit.parse_scenes(scenes), checkpoint=checkpoint,
-                             params=params, num_orbit_frames=orbit_frames)
+                             params=params, num_orbit_frames=orbit_frames, removal=removal)
   return "\n".join(f"{p}\n  {g}" for p, g in written)

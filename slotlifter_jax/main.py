@@ -53,6 +53,9 @@ flags.DEFINE_integer("move_slot", None, "edit: render the chosen --scenes with t
                      "by --by.")
 flags.DEFINE_string("by", "", "edit: --move_slot's translation dx,dy,dz in the data set's world "
                     "units and axes.")
+flags.DEFINE_enum("removal", None, ["zero", "delete"], "edit: how a removed or moved slot "
+                  "leaves its place: zero its density, or delete it from the slot set the "
+                  "others are decoded with (default: edit_scores.REMOVAL; docs/editing.md §4).")
 flags.mark_flags_as_required(["config", "workdir"])
 FLAGS = flags.FLAGS
 
@@ -77,7 +80,7 @@ def main(argv):
   if not FLAGS.distributed and any(
       FLAGS[f].present for f in ("coordinator_address", "num_processes", "process_id")):
     sys.exit("error: --coordinator_address, --num_processes and --process_id need --distributed")
-  stray = [f for f in ("remove_slot", "move_slot", "by") if FLAGS[f].present]
+  stray = [f for f in ("remove_slot", "move_slot", "by", "removal") if FLAGS[f].present]
   if stray and FLAGS.mode != "edit":
     sys.exit(f"error: --{stray[0]}: only with --mode=edit")
   # Before JAX starts (seconds on a CPU) and before the processes of a --distributed launch
@@ -129,7 +132,8 @@ def main(argv):
                           remove_slot=FLAGS.remove_slot, move_slot=FLAGS.move_slot, by=FLAGS.by,
                           checkpoint=FLAGS.checkpoint, params=FLAGS.params,
                           max_scenes=FLAGS.max_scenes, overwrite=FLAGS.overwrite,
-                          orbit_frames=FLAGS.orbit_frames))
+                          orbit_frames=FLAGS.orbit_frames,
+                          **({"removal": FLAGS.removal} if FLAGS.removal else {})))
       except edit.EditFlagError as e:
         sys.exit(f"error: {e}")  # the message starts with the flag
     else:

@@ -78,6 +78,7 @@ def test_edit_scores_a_split_from_the_command_line(run_dir):
   assert prov["config"]["model"]["num_slots"] == 4 and "cpu_model" in prov
   assert "git_commit" in prov
   assert report["settings"]["match_iou"] == edit_scores.MATCH_IOU
+  assert report["settings"]["removal"] == edit_scores.REMOVAL
   # Again without --overwrite: refused, the file kept.
   with open(path, "rb") as f:
     kept = f.read()
@@ -95,6 +96,8 @@ def test_edit_scores_a_split_from_the_command_line(run_dir):
     assert last.startswith(f"error: {flag}: "), out[-2000:]
   code, out = _main(f"--workdir={run_dir}", "--mode=eval", "--remove_slot=0")
   assert code != 0 and out.strip().splitlines()[-1] == "error: --remove_slot: only with --mode=edit"
+  code, out = _main(f"--workdir={run_dir}", "--mode=eval", "--removal=delete")
+  assert code != 0 and out.strip().splitlines()[-1] == "error: --removal: only with --mode=edit"
   assert _tree_digest(os.path.join(run_dir, "checkpoints")) == checkpoints
   with open(path, "rb") as f:
     assert f.read() == kept
@@ -118,6 +121,11 @@ def test_scoring_path_and_one_edit_pictures(run_dir, tmp_path):
       assert all(f[k] is None or f[k] == f[k] for k in f)  # no NaN: null or a number
   pictures = os.listdir(os.path.join(run_dir, "edit", "test", "pictures"))
   assert {p.split("_")[2] for p in pictures} == {"remove", "move"}
+  # The other removal scores the same edits, and says so.
+  deleted = edit_eval.score_split(config, run_dir, max_scenes=1, overwrite=True, progress=False,
+                                  match_iou=0.0, removal="delete")
+  assert deleted["settings"]["removal"] == "delete"
+  assert [r.get("slot") for r in deleted["edits"]] == [r.get("slot") for r in report["edits"]]
   # One edit of chosen scenes: pictures and an orbit, no metrics file touched.
   metrics_path = os.path.join(run_dir, "edit", "test", "edit_metrics.json")
   with open(metrics_path, "rb") as f:

@@ -298,3 +298,40 @@ def test_world_translation_moves_points_by_t_relative_to_every_camera():
   bad[2, :3, 3] += 0.1
   with pytest.raises(ValueError, match="one rotation"):
     edits.frame_map(world_cam_to_world=world, model_cam_to_world=bad, scene_scale=scale)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", MODES)
+def test_deleting_a_slot_is_the_render_of_the_slot_set_without_it(mode):
+  model, inputs, params, sources, encoded = _setup(mode)
+  for k in (0, K - 1):
+    r = _render_edit(mode, edits.Edit.delete_slot(k, K))
+    # Reference: the model decoding the slot set that NumPy cut slot k out of.
+    cut = encoded.replace(slots=jnp.asarray(np.delete(np.asarray(encoded.slots), k, axis=1)))
+    ref = jit(lambda p: pictures.render_rays(model, p, cut, sources=sources,
+                                             ray_origins=inputs["ray_origins"],
+                                             ray_directions=inputs["ray_directions"]))(params)
+    np.testing.assert_allclose(r.colour, ref.coarse.colour, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(r.depth, ref.coarse.depth, rtol=1e-5, atol=1e-6)
+    seg = np.asarray(r.segmentation)
+    np.testing.assert_array_equal(seg[..., k], 0.0)
+    np.testing.assert_allclose(np.delete(seg, k, axis=-1), ref.coarse.segmentation, rtol=1e-5,
+                               atol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", MODES)
+def test_a_deleted_slot_leaves_no_trace_of_its_content(mode):
+  model, inputs, params, sources, encoded = _setup(mode)
+  k = 1
+  other = encoded.replace(slots=encoded.slots.at[:, k].set(-3.0 * encoded.slots[:, k] + 1.0))
+  run = lambda e: jit(lambda p: edits.render_edit(
+      model, p, e, sources, edits.Edit.delete_slot(k, K), origins=inputs["ray_origins"],
+      directions=inputs["ray_directions"]))(params)
+  a, b = run(encoded), run(other)
+  np.testing.assert_allclose(a.colour, b.colour, rtol=1e-6, atol=1e-7)
+  # Whereas zeroing its density keeps what the slot did to the others' weights.
+  zeroed = lambda e: jit(lambda p: edits.render_edit(
+      model, p, e, sources, edits.Edit.remove([k], K), origins=inputs["ray_origins"],
+      directions=inputs["ray_directions"]))(params)
+  assert not np.allclose(zeroed(encoded).colour, zeroed(other).colour, rtol=1e-6, atol=1e-7)

@@ -28,6 +28,13 @@ contributes.
   carry the object's colour (docs/method.md §1.3); where no other slot has density the ray stays
   transparent and renders black (no background colour, §1.5). docs/editing.md says what that
   looks like.
+- Delete slot k (`Edit.delete_slot`; `Edit.moving(..., delete=True)` for the slot a move takes
+  away): the plain pass decodes with slot k taken out of the slot set, so the allocation
+  transformer and the point-slot weights W (a softmax over s_∅ and the slots) see only the
+  others, and every point slot k held goes to the slot that matches it next, or to s_∅. This is
+  the scene without the object as the model can express it: the floor under the object is held
+  again by whichever slot its lifted features fit, and comes back if that is the background
+  slot. Removing (zeroing σ_k) and deleting agree wherever slot k held no weight.
 - Keep slots: the complement, one pass. Keeping one slot is what that slot renders alone in the
   `--mode=render` panels (rendering/pictures.render_each_slot).
 - Move slot k by a rigid motion T (a translation t, optionally a turn about the vertical axis
@@ -154,10 +161,17 @@ def moved_rays(origins: jax.Array, directions: jax.Array, move: RigidMove):
 
 @flax.struct.dataclass
 class Edit:
-  """Which pass each real slot comes from (`composite`) and the motion of the moved pass."""
+  """Which pass each real slot comes from (`composite`) and the motion of the moved pass.
+
+  With `delete`, slot `deleted` also leaves the set the plain pass decodes with
+  (`without_slot`), so the other slots' point-slot weights are normalised without it: what the
+  model renders for the scene whose slot set lacks that object (module docstring, "Delete").
+  """
   owner: jax.Array  # [K] int32: PLAIN, MOVED or REMOVED
   move: RigidMove
+  deleted: jax.Array = 0  # [] int32: the slot the plain pass decodes without, when `delete`
   has_move: bool = flax.struct.field(pytree_node=False, default=False)
+  delete: bool = flax.struct.field(pytree_node=False, default=False)
 
   @staticmethod
   def identity(num_slots: int) -> "Edit":
@@ -170,16 +184,47 @@ class Edit:
     return Edit(owner=jnp.asarray(owner), move=RigidMove.make((0.0, 0.0, 0.0)))
 
   @staticmethod
+  def delete_slot(slot: int, num_slots: int) -> "Edit":
+    """Remove `slot` by decoding without it (one slot; `remove` zeroes any number)."""
+    edit = Edit.remove([slot], num_slots)
+    return edit.replace(deleted=jnp.asarray(slot, jnp.int32), delete=True)
+
+  @staticmethod
   def keep(slots: Sequence[int], num_slots: int) -> "Edit":
     owner = np.full(num_slots, REMOVED, np.int32)
     owner[_check_slots(slots, num_slots)] = PLAIN
     return Edit(owner=jnp.asarray(owner), move=RigidMove.make((0.0, 0.0, 0.0)))
 
   @staticmethod
-  def moving(slot: int, num_slots: int, move: RigidMove) -> "Edit":
+  def moving(slot: int, num_slots: int, move: RigidMove, *, delete: bool = False) -> "Edit":
+    """Move `slot`; with `delete` the other slots are decoded without it, as `delete_slot`."""
     owner = np.zeros(num_slots, np.int32)
     owner[_check_slots([slot], num_slots)] = MOVED
-    return Edit(owner=jnp.asarray(owner), move=move, has_move=True)
+    return Edit(owner=jnp.asarray(owner), move=move, has_move=True,
+                deleted=jnp.asarray(slot, jnp.int32), delete=delete)
+
+
+# How a removal takes a slot away (docs/editing.md §4): "zero" its density and weights in the
+# plain pass, or "delete" it from the slot set the plain pass decodes with.
+REMOVALS = ("zero", "delete")
+
+
+def removal_edit(slot: int, num_slots: int, removal: str) -> Edit:
+  """Remove one slot the `removal` way (REMOVALS)."""
+  _check_removal(removal)
+  return Edit.delete_slot(slot, num_slots) if removal == "delete" else Edit.remove([slot],
+                                                                                   num_slots)
+
+
+def move_edit(slot: int, num_slots: int, move: RigidMove, removal: str) -> Edit:
+  """Move one slot, taking it from where it stood the `removal` way (REMOVALS)."""
+  _check_removal(removal)
+  return Edit.moving(slot, num_slots, move, delete=removal == "delete")
+
+
+def _check_removal(removal: str) -> None:
+  if removal not in REMOVALS:
+    raise ValueError(f"removal must be one of {REMOVALS}, got {removal!r}")
 
 
 def _check_slots(slots: Sequence[int], num_slots: int) -> list[int]:
@@ -191,26 +236,53 @@ def _check_slots(slots: Sequence[int], num_slots: int) -> list[int]:
 
 
 def edit_rays(render_pass: Callable, edit: Edit, *, origins: jax.Array, directions: jax.Array,
-              far, density_scale: float) -> volume.RenderResult:
+              far, density_scale: float,
+              moved_pass: Optional[Callable] = None) -> volume.RenderResult:
   """An edited rendering of rays [..., 3] from a pass function.
 
   render_pass(origins, directions, z) → (SlotField, z): the field at the samples of the rays, at
   the depths z [..., S] when given and at the pass's own depths when z is None. The plain pass
-  runs at its own depths; with `edit.has_move` a second pass runs along `moved_rays` at the same
-  depths. Any field will do: the model's (`render_edit`), or a constructed one in the tests.
+  runs at its own depths; with `edit.has_move` a second pass, `moved_pass` (default
+  `render_pass`), runs along `moved_rays` at the same depths. Any field will do: the model's
+  (`render_edit`), or a constructed one in the tests.
   """
   plain, z = render_pass(origins, directions, None)
   fields = [plain]
   if edit.has_move:
     o, d = moved_rays(origins, directions, edit.move)
-    moved, _ = render_pass(o, d, z)
+    moved, _ = (moved_pass or render_pass)(o, d, z)
     fields.append(moved)
   return composite(fields, edit.owner, z=z, far=far, density_scale=density_scale)
 
 
-def model_pass(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded, sources: dict):
+def without_slot(slots: jax.Array, slot) -> jax.Array:
+  """slots [B, K, D] without slot `slot` (a traced int): [B, K−1, D], the others in order."""
+  k = slots.shape[-2]
+  keep = jnp.arange(k - 1) + (jnp.arange(k - 1) >= slot)  # skips `slot`
+  return jnp.take(slots, keep, axis=-2)
+
+
+def with_slot_restored(field: SlotField, slot) -> SlotField:
+  """A field of K−1 slots (decoded `without_slot`) back on K slots, zero at `slot`."""
+  def restore(x, offset):  # x [..., offset + K − 1]: the real slots start at `offset`
+    k = x.shape[-1] - offset + 1
+    j = jnp.arange(k)
+    source = jnp.clip(j - (j > slot), 0, k - 2)
+    real = jnp.where(j == slot, jnp.zeros((), x.dtype), jnp.take(x[..., offset:], source, axis=-1))
+    return jnp.concatenate([x[..., :offset], real], axis=-1)
+  return SlotField(slot_density=restore(field.slot_density, 0), colour=field.colour,
+                   weights=restore(field.weights, 1))
+
+
+def model_pass(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded, sources: dict,
+               *, deleted=None):
   """The render_pass of `edit_rays` for a model at evaluation: `model.render_rays`, or with z the
-  coarse pass at those depths (`model.render_at_depths`, which refuses models with a fine pass)."""
+  coarse pass at those depths (`model.render_at_depths`, which refuses models with a fine pass).
+  With `deleted` (a slot index) the model decodes without that slot and the field gets it back
+  as zeros."""
+  if deleted is not None:
+    encoded = encoded.replace(slots=without_slot(encoded.slots, deleted))
+
   def render_pass(origins, directions, z):
     if z is None:
       out = model.apply({"params": params}, encoded, **sources, ray_origins=origins,
@@ -218,7 +290,8 @@ def model_pass(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded, 
     else:
       out = model.apply({"params": params}, encoded, **sources, ray_origins=origins,
                         ray_directions=directions, z=z, method=model.render_at_depths)
-    return field_of(out), out.z
+    field = field_of(out)
+    return (field if deleted is None else with_slot_restored(field, deleted)), out.z
   return render_pass
 
 
@@ -229,8 +302,10 @@ def render_edit(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded,
     raise ValueError(f"moving a slot needs one set of sample depths for both passes; the model "
                      f"has a fine pass (num_fine_samples={model.num_fine_samples}) whose depths "
                      f"follow each pass's own coarse weights")
-  return edit_rays(model_pass(model, params, encoded, sources), edit, origins=origins,
-                   directions=directions, far=model.far, density_scale=model.density_scale)
+  full = model_pass(model, params, encoded, sources)
+  plain = model_pass(model, params, encoded, sources, deleted=edit.deleted) if edit.delete else full
+  return edit_rays(plain, edit, origins=origins, directions=directions, far=model.far,
+                   density_scale=model.density_scale, moved_pass=full)
 
 
 def render_swap(model: model_lib.SlotLifter, params, scenes: Sequence[tuple], owner, *,
