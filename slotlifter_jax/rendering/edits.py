@@ -13,7 +13,9 @@ one or more passes, or from none (`composite`):
 
   σ̃ = Σ_k σ̃_k,   σ̃_k = σ_k of the pass that owns slot k (0 for a removed slot),
   c̃ = Σ_p (σ̃_p / σ̃)·c_p   with σ̃_p the density pass p contributes (c of pass 0 where σ̃ = 0),
-  W̃_k = W_k of the pass that owns slot k (0 for a removed slot),
+  W̃_k = t_p·W_k of the pass p that owns slot k (0 for a removed slot), t_p = min(1, σ_p/σ̃),
+
+with σ_p all of pass p's density at the sample, owned or not (t_p = 1 where σ̃ = 0),
 
 then volume rendering (docs/method.md §1.5) of σ̃, c̃ and W̃ along the unchanged sample depths.
 A pass's colour is one colour per sample, not one per slot (the colour MLP reads the slot mixture
@@ -98,16 +100,23 @@ def composite(fields: Sequence[SlotField], owner, *, z: jax.Array, far, density_
   kept = [(owner == p).astype(f.slot_density.dtype) for p, f in enumerate(fields)]  # P × [K]
   per_pass = [jnp.sum(f.slot_density * m, axis=-1) for f, m in zip(fields, kept)]  # P × [..., S]
   density = sum(per_pass[1:], per_pass[0])  # [..., S]
+  safe = jnp.where(density > 0, density, 1.0)
   colour = fields[0].colour
   if len(fields) > 1:
     # c_0 + Σ_{p≥1} (σ̃_p/σ̃)·(c_p − c_0) = Σ_p (σ̃_p/σ̃)·c_p, and exactly c_0 when every other pass
     # gives pass 0's colour (a move by zero).
-    safe = jnp.where(density > 0, density, 1.0)
     for p in range(1, len(fields)):
       share = jnp.where(density > 0, per_pass[p] / safe, 0.0)[..., None]  # [..., S, 1]
       colour = colour + share * (fields[p].colour - fields[0].colour)
-  real = sum((f.weights[..., 1:] * m for f, m in zip(fields, kept)),
-             jnp.zeros_like(fields[0].weights[..., 1:]))  # [..., S, K]
+  # W is a membership, not gated by density: the plain pass gives a point of empty air to the
+  # background slot as surely as the moved pass gives the moved object's point to slot k, so the
+  # plain sum of two passes' W would split the moved object's pixels with the background. Each
+  # pass's W counts by min(1, σ_p/σ̃), σ_p all of that pass's density at the point: 1 with one pass
+  # and on a move by zero, ~0 for a pass that is empty where another pass puts an object.
+  real = jnp.zeros_like(fields[0].weights[..., 1:])  # [..., S, K]
+  for f, m in zip(fields, kept):
+    trust = jnp.where(density > 0, jnp.minimum(1.0, jnp.sum(f.slot_density, -1) / safe), 1.0)
+    real = real + f.weights[..., 1:] * m * trust[..., None]
   weights = jnp.concatenate([fields[0].weights[..., :1], real], axis=-1)  # [..., S, K+1]
   return volume.volume_render(density=density, z=z, colour=colour, slot_weights=weights, far=far,
                               density_scale=density_scale, last_delta=last_delta)
