@@ -366,11 +366,13 @@ def edit_clevr() -> list[str]:
   with the default removal and, below it, the other form."""
   rows = ["| edit | removal | edits (no slot) | edited better than unedited | PSNR changed "
           "region: edited / unedited | seen by the source / unseen (edited) | whole novel view: "
-          "edited / unedited | IoU moved mask: edited / unmoved |",
-          "|---|---|---|---|---|---|---|---|"]
+          "edited / unedited | IoU moved mask: edited / unmoved | commit |",
+          "|---|---|---|---|---|---|---|---|---|"]
   files = (EDIT_CLEVR, EDIT_CLEVR_ZERO)
   for name in files:
     d = _load(name)
+    commit = d["provenance"]["git_commit"]
+    commit = commit[:7] + ("-dirty" if commit.endswith("-dirty") else "")
     for kind in ("remove", "move"):
       s = d[kind]
       iou = (f"{_edit_cell(s, 'iou', '{:.3f}')} / {_edit_cell(s, 'iou_baseline', '{:.3f}')}"
@@ -379,7 +381,8 @@ def edit_clevr() -> list[str]:
                   f"({s['num_skipped']}) | {s['improved_fraction']:.1%} of {s['improved_count']} | "
                   f"{_edit_cell(s, 'psnr_changed')} / {_edit_cell(s, 'psnr_changed_baseline')} | "
                   f"{_edit_cell(s, 'psnr_changed_seen')} / {_edit_cell(s, 'psnr_changed_unseen')} "
-                  f"| {_edit_cell(s, 'psnr')} / {_edit_cell(s, 'psnr_baseline')} | {iou} |")
+                  f"| {_edit_cell(s, 'psnr')} / {_edit_cell(s, 'psnr_baseline')} | {iou} "
+                  f"| {commit} |")
   d = _load(EDIT_CLEVR)
   checkpoint = d["checkpoint"]
   return rows + ["", f"Split: `{d['split']}`, {d['num_scenes']} scenes, {d['image_size'][0]} px; "
@@ -388,7 +391,7 @@ def edit_clevr() -> list[str]:
                  "on the novel views against the edited ground truth; 'unedited' renders the "
                  "scene as it was (the baseline an edit must beat). Removal: `delete` (the "
                  "default, chosen on the validation split) decodes without the slot, `zero` "
-                 "zeroes its density. Measured on "
+                 "zeroes its density. Commit: the code that scored the file. Measured on "
                  f"{host(list(files))}.", _files_line(list(files))]
 
 
