@@ -276,3 +276,32 @@ def test_room_objects_draw_the_same_rooms_with_filled_in_chairs(form):
   d = defaults.base_config().data
   d.family, d.room_objects = "room", form
   assert os.path.basename(embedded.dataset_dir(d, seed=0)).endswith("-" + form)
+
+
+def test_room_object_scale_shrinks_every_chair_dimension_and_keeps_chairs_on_the_floor():
+  import numpy as np
+  from slotlifter_jax.data import embedded
+  from slotlifter_jax import defaults
+  scale = 0.6
+  for index in range(6):
+    rng = lambda: generator.scene_rng(seed=3, family="room", split="train", index=index)
+    spec = generator.sample_room_layout(rng(), object_scale=scale)
+    for obj in spec.objects:
+      w, d, height = obj.size
+      # The default draws scaled: seat 1.3–2.0 square, seat height 1.1–1.7 plus back 1.0–1.8.
+      assert 1.3 * scale - 1e-9 <= w <= 2.0 * scale + 1e-9
+      assert 1.3 * scale - 1e-9 <= d <= 2.0 * scale + 1e-9
+      assert 2.1 * scale - 1e-9 <= height <= 3.5 * scale + 1e-9
+      assert obj.bounding_radius == pytest.approx(np.hypot(w / 2, d / 2))
+      lows = [p.centre[2] - p.half_size[2] for p in obj.parts]
+      highs = [p.centre[2] + p.half_size[2] for p in obj.parts]
+      assert min(lows) == pytest.approx(0.0, abs=1e-12)  # the legs stand on the floor
+      assert max(highs) == pytest.approx(height)
+      # Still inside the default positions' range: x, y ~ U(-3, 3).
+      assert max(abs(obj.position[0]), abs(obj.position[1])) <= generator.ROOM_XY_RANGE
+  with pytest.raises(ValueError, match="object_scale") as info:
+    generator.check_object_options("room", object_scale=1.2)
+  assert info.value.field == "object_scale"
+  d = defaults.base_config().data
+  d.family, d.object_scale, d.room_objects = "room", scale, "boxes"
+  assert os.path.basename(embedded.dataset_dir(d, seed=0)).endswith("-o1-4-x0.6-boxes")

@@ -47,7 +47,7 @@ flags.DEFINE_integer("min_objects", 0, "Fewest objects per scene (0: the family'
                      "clevr 5, room 1).")
 flags.DEFINE_integer("max_objects", 0, "Most objects per scene (0: the family's default, "
                      "clevr 7, room 4).")
-flags.DEFINE_float("object_scale", 1.0, "Factor on every clevr object's size, in (0, 2].")
+flags.DEFINE_float("object_scale", 1.0, "Factor on every object's size, in (0, 2] (room: (0, 1]).")
 flags.DEFINE_bool("plain_background", False, "room only: the same scenes with untextured floor "
                   "and walls.")
 flags.DEFINE_bool("plain_objects", False, "room only: the same scenes with untextured chairs.")

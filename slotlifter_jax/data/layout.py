@@ -306,10 +306,10 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
     raise ObjectOptionError("min_objects", f"min_objects ({lo}) must not exceed max_objects ({hi}) "
                                            f"(0 stands for the {family} default "
                                            f"{object_count_range(family)})")
-  if family != "clevr" and object_scale != 1.0:
-    raise ObjectOptionError("object_scale", f"object_scale applies to the clevr family only (the "
-                                            f"{family} family's objects have their own size "
-                                            f"ranges), got {object_scale}")
+  if family == "room" and object_scale > 1.0:
+    raise ObjectOptionError("object_scale", f"object_scale must lie in (0, 1] for the room family "
+                                            f"(its tallest chair already reaches the top of the "
+                                            f"room's scene slab), got {object_scale}")
   for name, on in (("plain_background", plain_background), ("plain_objects", plain_objects),
                    ("no_walls", no_walls)):
     if on and family != "room":
@@ -448,7 +448,7 @@ def _chair(rng: np.random.Generator, label: int, xy: np.ndarray, yaw: float,
 def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
                        max_objects: int = 0, plain_background: bool = False,
                        plain_objects: bool = False, no_walls: bool = False,
-                       room_objects: str = "chairs") -> SceneSpec:
+                       room_objects: str = "chairs", object_scale: float = 1.0) -> SceneSpec:
   """1–4 primitive chairs on a textured floor inside four walls (docs/method.md §3.5).
 
   `min_objects`, `max_objects` (0: 1 and 4) narrow the chair count; the defaults draw as before.
@@ -457,9 +457,13 @@ def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
   `plain_objects`: likewise each chair in its one base colour, legs included. `no_walls`: the
   same scenes without walls, the floor running to the horizon as in the clevr family.
   `room_objects` (ROOM_OBJECTS): the same scenes with each chair's legs filled in ("solid") or
-  each chair one box of its footprint and height ("boxes").
+  each chair one box of its footprint and height ("boxes"). `object_scale` (≤ 1) multiplies every
+  size the chairs are drawn with, so their heights, and with them the floor they hide from a view
+  and the length of their shadows, come near CLEVR's (0.6: 0.8–1.2 wide, 1.3–2.1 tall); the
+  positions keep the default range.
   """
-  check_object_options("room", min_objects, max_objects, room_objects=room_objects)
+  check_object_options("room", min_objects, max_objects, object_scale,
+                       room_objects=room_objects)
   lo, hi = object_count_range("room", min_objects, max_objects)
   while True:
     n = int(rng.integers(lo, hi + 1))
@@ -468,7 +472,7 @@ def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
              "leg_thickness": rng.uniform(0.1, 0.2), "back_thickness": rng.uniform(0.1, 0.2),
              "back_height": rng.uniform(1.0, 1.8), "leg_inset": rng.uniform(0.0, 0.12)}
             for _ in range(n)]
-    dims = [{k: float(v) for k, v in dd.items()} for dd in dims]
+    dims = [{k: float(v) * object_scale for k, v in dd.items()} for dd in dims]
     radii = [math.hypot(dd["seat_width"] / 2, dd["seat_depth"] / 2) for dd in dims]
     xy = _place(rng, radii, ROOM_XY_RANGE)
     if xy is not None:

@@ -73,7 +73,7 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
                    room_objects: str = "chairs") -> GeneratedScene:
   """Samples layouts and cameras until every object covers enough pixels of view 0, then renders.
 
-  `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
+  `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (room: ≤ 1)
   select an easier set; see `sample_clevr_layout`. `plain_background`, `plain_objects` (room
   only): the same scenes with untextured floor and walls, or chairs; `no_walls` (room only):
   without the walls; `room_objects` (room only): chairs, solid chairs or boxes
@@ -146,7 +146,8 @@ def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size
       state = rng.bit_generator.state
       spec = sample_room_layout(rng, min_objects=min_objects, max_objects=max_objects,
                                 plain_background=plain_background,
-                                plain_objects=plain_objects, no_walls=no_walls)
+                                plain_objects=plain_objects, no_walls=no_walls,
+                                object_scale=object_scale)
       shaped = spec
       if room_objects != "chairs":
         twin = np.random.Generator(type(rng.bit_generator)())
@@ -154,7 +155,7 @@ def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size
         shaped = sample_room_layout(twin, min_objects=min_objects, max_objects=max_objects,
                                     plain_background=plain_background,
                                     plain_objects=plain_objects, no_walls=no_walls,
-                                    room_objects=room_objects)
+                                    room_objects=room_objects, object_scale=object_scale)
     cameras = tuple(sample_cameras(rng, views))
     c2w = np.stack([camera_to_world(c) for c in cameras])
     arrays = scene_arrays(spec)
@@ -348,7 +349,7 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
   `num_dev` (None: as many as `num_test`) scenes of the development split, the former test split
   (layout.SPLITS says why); `num_test` scenes of the held-out test split.
 
-  `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (CLEVR only)
+  `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (room: ≤ 1)
   select an easier set (`sample_clevr_layout`); its dataset.json headers record them under
   "objects", and each scene's entry lists its objects. The folder names stay the family's.
   `plain_background`, `plain_objects` (room only) draw the same scenes with untextured floor and
