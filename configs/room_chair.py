@@ -8,7 +8,7 @@ Real data: --config.data.root=/path/to/uorf_data (holding room_chair_{train,test
 room set: no rung of the room ladder split within 10 000 steps (experiments/journal/2026-12.md,
 "Textured rooms: the room ladder"). The rungs are data options: data.plain_background,
 data.plain_objects, data.no_walls, data.room_objects (chairs, solid or boxes),
-data.object_scale (≤ 1: smaller chairs), data.min_objects/max_objects;
+data.object_scale (≤ 1: smaller chairs), data.grey_floor, data.min_objects/max_objects;
 data.ray_sampling=floor_parallax draws rays towards the chairs on a textured floor.
 """
 

@@ -115,6 +115,7 @@ def base_config() -> ml_collections.ConfigDict:
   # and each chair as drawn ("chairs"), its legs filled in ("solid") or one box ("boxes"): the
   # rungs between thin parts and compact objects (data/layout.py, ROOM_OBJECTS)
   d.room_objects = "chairs"
+  d.grey_floor = False  # and every scene on the clevr family's grey floor: one floor for all scenes
   d.novel_ray_prob = 0.75  # probability that a scene's rays come from novel views only
   # "uniform" (paper) or "contrast": a share `contrast_mix` of the rays drawn towards pixels far
   # from their view's median colour (data/pipeline.py says why and what it changes).

@@ -305,3 +305,35 @@ def test_room_object_scale_shrinks_every_chair_dimension_and_keeps_chairs_on_the
   d = defaults.base_config().data
   d.family, d.object_scale, d.room_objects = "room", scale, "boxes"
   assert os.path.basename(embedded.dataset_dir(d, seed=0)).endswith("-o1-4-x0.6-boxes")
+
+
+def test_grey_floor_draws_the_same_rooms_on_the_clevr_floor():
+  import numpy as np
+  from slotlifter_jax.data import embedded
+  from slotlifter_jax import defaults
+  draw = lambda **kw: generator.generate_scene(
+      generator.scene_rng(seed=5, family="room", split="train", index=2), family="room", views=2,
+      image_size=32, room_objects="boxes", no_walls=True, **kw)
+  own, grey = draw(), draw(grey_floor=True)
+  # Only the floor differs: cameras, lights, objects and their labels and depths are the same.
+  np.testing.assert_array_equal(grey.cam_to_world, own.cam_to_world)
+  assert grey.spec.objects == own.spec.objects and grey.spec.lights == own.spec.lights
+  np.testing.assert_array_equal(grey.label, own.label)
+  np.testing.assert_array_equal(grey.depth, own.depth)
+  clevr = generator.sample_clevr_layout(np.random.default_rng(0))
+  assert grey.spec.floor == clevr.floor and own.spec.floor != clevr.floor
+  # Object pixels away from an object's outline (where supersamples mix in the floor) keep their
+  # colour; only background pixels change.
+  lab = np.pad(own.label, ((0, 0), (1, 1), (1, 1)), constant_values=-1)
+  interior = (own.label > 0) & np.all(
+      [lab[:, 1 + dy:lab.shape[1] - 1 + dy, 1 + dx:lab.shape[2] - 1 + dx] == own.label
+       for dy in (-1, 0, 1) for dx in (-1, 0, 1)], axis=0)
+  assert interior.sum() > 20
+  np.testing.assert_array_equal(grey.rgb[interior], own.rgb[interior])
+  assert np.any(grey.rgb[grey.label == 0] != own.rgb[own.label == 0])
+  with pytest.raises(ValueError, match="grey_floor") as info:
+    generator.check_object_options("clevr", grey_floor=True)
+  assert info.value.field == "grey_floor"
+  d = defaults.base_config().data
+  d.family, d.room_objects, d.grey_floor = "room", "boxes", True
+  assert os.path.basename(embedded.dataset_dir(d, seed=0)).endswith("-boxes-greyfloor")

@@ -30,15 +30,16 @@ def cache_root() -> str:
 
 def object_options(data_config) -> dict:
   """min_objects, max_objects, object_scale, plain_background, plain_objects, no_walls,
-  room_objects of a data config; configs saved before these fields existed get the defaults
-  (0, 0, 1.0, False ×3, "chairs")."""
+  room_objects, grey_floor of a data config; configs saved before these fields existed get the
+  defaults (0, 0, 1.0, False ×3, "chairs", False)."""
   d = data_config
   return {"min_objects": int(d.get("min_objects", 0)), "max_objects": int(d.get("max_objects", 0)),
           "object_scale": float(d.get("object_scale", 1.0)),
           "plain_background": bool(d.get("plain_background", False)),
           "plain_objects": bool(d.get("plain_objects", False)),
           "no_walls": bool(d.get("no_walls", False)),
-          "room_objects": str(d.get("room_objects", "chairs"))}
+          "room_objects": str(d.get("room_objects", "chairs")),
+          "grey_floor": bool(d.get("grey_floor", False))}
 
 
 def num_dev_scenes(data_config) -> int:
@@ -69,6 +70,8 @@ def dataset_dir(data_config, *, seed: int) -> str:
       name += "-nowalls"
     if objects["room_objects"] != "chairs":
       name += "-" + objects["room_objects"]
+    if objects["grey_floor"]:
+      name += "-greyfloor"
   return os.path.join(cache_root(), name)
 
 

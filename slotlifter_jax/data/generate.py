@@ -55,6 +55,8 @@ flags.DEFINE_bool("no_walls", False, "room only: the same scenes without walls."
 flags.DEFINE_string("room_objects", "chairs", "room only: the same scenes with chairs, solid "
                     "chairs (legs filled in) or boxes (one box of a chair's footprint and "
                     "height): one of chairs, solid, boxes.")
+flags.DEFINE_bool("grey_floor", False, "room only: the same scenes on the clevr family's grey "
+                  "floor.")
 
 # Label colours for previews only (the data set's masks are grey levels).
 PREVIEW_PALETTE = np.array([
@@ -68,7 +70,7 @@ def preview_grid(*, family: str, num_scenes: int = 3, views: int = 4, image_size
                  seed: int = 0, supersample: int = 2, min_objects: int = 0, max_objects: int = 0,
                  object_scale: float = 1.0, plain_background: bool = False,
                  plain_objects: bool = False, no_walls: bool = False,
-                 room_objects: str = "chairs") -> np.ndarray:
+                 room_objects: str = "chairs", grey_floor: bool = False) -> np.ndarray:
   """[rows·H, N·W, 3] uint8: per training scene, its N views and below them their masks."""
   rows = []
   for s in range(num_scenes):
@@ -78,7 +80,7 @@ def preview_grid(*, family: str, num_scenes: int = 3, views: int = 4, image_size
                                      max_objects=max_objects, object_scale=object_scale,
                                      plain_background=plain_background,
                                      plain_objects=plain_objects, no_walls=no_walls,
-                                     room_objects=room_objects)
+                                     room_objects=room_objects, grey_floor=grey_floor)
     rows.append(list(scene.rgb))
     rows.append([PREVIEW_PALETTE[lab % len(PREVIEW_PALETTE)] for lab in scene.label])
   h = w = image_size
@@ -95,7 +97,7 @@ def main(argv):
   objects = dict(min_objects=FLAGS.min_objects, max_objects=FLAGS.max_objects,
                  object_scale=FLAGS.object_scale, plain_background=FLAGS.plain_background,
                  plain_objects=FLAGS.plain_objects, no_walls=FLAGS.no_walls,
-                 room_objects=FLAGS.room_objects)
+                 room_objects=FLAGS.room_objects, grey_floor=FLAGS.grey_floor)
   try:
     generator.check_object_options(FLAGS.family, **objects)
   except generator.ObjectOptionError as e:

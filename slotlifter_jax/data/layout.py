@@ -292,7 +292,7 @@ class ObjectOptionError(ValueError):
 def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0,
                          object_scale: float = 1.0, plain_background: bool = False,
                          plain_objects: bool = False, no_walls: bool = False,
-                         room_objects: str = "chairs") -> None:
+                         room_objects: str = "chairs", grey_floor: bool = False) -> None:
   """ObjectOptionError (a ValueError) naming the offending field unless the options describe a
   set this generator can draw."""
   if family not in FAMILIES:
@@ -311,7 +311,7 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
                                             f"(its tallest chair already reaches the top of the "
                                             f"room's scene slab), got {object_scale}")
   for name, on in (("plain_background", plain_background), ("plain_objects", plain_objects),
-                   ("no_walls", no_walls)):
+                   ("no_walls", no_walls), ("grey_floor", grey_floor)):
     if on and family != "room":
       raise ObjectOptionError(name, f"{name} applies to the room family only (the {family} "
                                     f"set is plain already)")
@@ -330,11 +330,16 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
 def is_default_objects(family: str, min_objects: int = 0, max_objects: int = 0,
                        object_scale: float = 1.0, plain_background: bool = False,
                        plain_objects: bool = False, no_walls: bool = False,
-                       room_objects: str = "chairs") -> bool:
+                       room_objects: str = "chairs", grey_floor: bool = False) -> bool:
   """True when the options draw the family's default set (explicit 5 and 7 count as default)."""
-  return not (plain_background or plain_objects or no_walls) and room_objects == "chairs" and (
+  return not (plain_background or plain_objects or no_walls or grey_floor) and (
+      room_objects == "chairs") and (
       object_count_range(family, min_objects, max_objects) == object_count_range(family)
       and object_scale == 1.0)
+
+
+# The clevr family's floor, which every clevr scene shares; room scenes may borrow it (grey_floor).
+CLEVR_GROUND = Material(rgb=(160, 160, 158), rgb2=(160, 160, 158), specular=0.03, shininess=6.0)
 
 
 def sample_clevr_layout(rng: np.random.Generator, *, min_objects: int = 0, max_objects: int = 0,
@@ -382,9 +387,8 @@ def sample_clevr_layout(rng: np.random.Generator, *, min_objects: int = 0, max_o
         label=i + 1, shape=shapes[i], colour=colours[i], material_name=materials[i],
         size=sizes[i], position=centre, yaw=yaw, bounding_radius=radii[i],
         parts=(Primitive(kind, centre, (r, r, r), yaw),), material=material))
-  ground = Material(rgb=(160, 160, 158), rgb2=(160, 160, 158), specular=0.03, shininess=6.0)
   return SceneSpec(family="clevr", objects=tuple(objects), lights=_default_lights(rng),
-                   ambient=(0.16, 0.16, 0.17), floor=ground, walls=None)
+                   ambient=(0.16, 0.16, 0.17), floor=CLEVR_GROUND, walls=None)
 
 
 def _random_rgb(rng: np.random.Generator, value_range=(0.3, 0.9),
@@ -448,7 +452,8 @@ def _chair(rng: np.random.Generator, label: int, xy: np.ndarray, yaw: float,
 def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
                        max_objects: int = 0, plain_background: bool = False,
                        plain_objects: bool = False, no_walls: bool = False,
-                       room_objects: str = "chairs", object_scale: float = 1.0) -> SceneSpec:
+                       room_objects: str = "chairs", object_scale: float = 1.0,
+                       grey_floor: bool = False) -> SceneSpec:
   """1–4 primitive chairs on a textured floor inside four walls (docs/method.md §3.5).
 
   `min_objects`, `max_objects` (0: 1 and 4) narrow the chair count; the defaults draw as before.
@@ -460,10 +465,11 @@ def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
   each chair one box of its footprint and height ("boxes"). `object_scale` (≤ 1) multiplies every
   size the chairs are drawn with, so their heights, and with them the floor they hide from a view
   and the length of their shadows, come near CLEVR's (0.6: 0.8–1.2 wide, 1.3–2.1 tall); the
-  positions keep the default range.
+  positions keep the default range. `grey_floor`: the same scenes on the clevr family's plain grey
+  floor (CLEVR_GROUND) instead of the scene's own wood or tiles, the one floor every scene shares.
   """
   check_object_options("room", min_objects, max_objects, object_scale,
-                       room_objects=room_objects)
+                       room_objects=room_objects, grey_floor=grey_floor)
   lo, hi = object_count_range("room", min_objects, max_objects)
   while True:
     n = int(rng.integers(lo, hi + 1))
@@ -502,6 +508,8 @@ def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
   if plain_background:
     floor = dataclasses.replace(floor, texture="plain", rgb2=floor.rgb)
     walls = tuple(dataclasses.replace(w, texture="plain", rgb2=w.rgb) for w in walls)
+  if grey_floor:
+    floor = CLEVR_GROUND
   if plain_objects:
     objects = tuple(dataclasses.replace(
         o, material=dataclasses.replace(o.material, texture="plain", rgb2=o.material.rgb),

@@ -202,7 +202,8 @@ def redraw(manifest: dict, name: str) -> DrawnScene:
         object_scale=float(objects.get("object_scale", 1.0)),
         # Recorded only by sets drawn with it, as the writer's header does.
         room_objects=str(objects.get("room_objects", "chairs")),
-        **{k: True for k in ("plain_background", "plain_objects", "no_walls") if objects.get(k)})
+        **{k: True for k in ("plain_background", "plain_objects", "no_walls", "grey_floor")
+           if objects.get(k)})
   except (KeyError, TypeError, ValueError) as e:
     if isinstance(e, RedrawError):
       raise

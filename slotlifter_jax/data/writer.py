@@ -70,7 +70,7 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
                    max_objects: int = 0, object_scale: float = 1.0,
                    plain_background: bool = False,
                    plain_objects: bool = False, no_walls: bool = False,
-                   room_objects: str = "chairs") -> GeneratedScene:
+                   room_objects: str = "chairs", grey_floor: bool = False) -> GeneratedScene:
   """Samples layouts and cameras until every object covers enough pixels of view 0, then renders.
 
   `min_objects`, `max_objects` (0: the family's default count) and `object_scale` (room: ≤ 1)
@@ -89,7 +89,7 @@ def generate_scene(rng: np.random.Generator, *, family: str, views: int, image_s
                            min_objects=min_objects, max_objects=max_objects,
                            object_scale=object_scale, plain_background=plain_background,
                            plain_objects=plain_objects, no_walls=no_walls,
-                           room_objects=room_objects)
+                           room_objects=room_objects, grey_floor=grey_floor)
 
 
 def _cpu_device():
@@ -104,7 +104,7 @@ def draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size:
                supersample: int = 2, max_attempts: int = 100, min_objects: int = 0,
                max_objects: int = 0, object_scale: float = 1.0,
                plain_background: bool = False, plain_objects: bool = False,
-               no_walls: bool = False, room_objects: str = "chairs"):
+               no_walls: bool = False, room_objects: str = "chairs", grey_floor: bool = False):
   """The layout and cameras `generate_scene` draws from `rng`, without the final render:
   (spec, cameras, cam_to_world [N, 4, 4], attempts). Scene edits (data/scene_edits.py) re-draw
   a stored scene's SceneSpec with it, from the seed its dataset.json records."""
@@ -114,7 +114,7 @@ def draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size:
                        min_objects=min_objects, max_objects=max_objects,
                        object_scale=object_scale, plain_background=plain_background,
                        plain_objects=plain_objects, no_walls=no_walls,
-                       room_objects=room_objects)
+                       room_objects=room_objects, grey_floor=grey_floor)
 
 
 def render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
@@ -129,9 +129,9 @@ def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size
                 supersample: int, max_attempts: int, min_objects: int, max_objects: int,
                 object_scale: float, plain_background: bool = False,
                 plain_objects: bool = False, no_walls: bool = False,
-                room_objects: str = "chairs"):
+                room_objects: str = "chairs", grey_floor: bool = False):
   check_object_options(family, min_objects, max_objects, object_scale, plain_background,
-                       plain_objects, no_walls, room_objects)
+                       plain_objects, no_walls, room_objects, grey_floor)
   options = render_options(family, supersample, walls=not no_walls)
   k32 = jnp.asarray(uorf_intrinsics(image_size), jnp.float32)
   threshold = min_visible_pixels(image_size)
@@ -147,7 +147,7 @@ def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size
       spec = sample_room_layout(rng, min_objects=min_objects, max_objects=max_objects,
                                 plain_background=plain_background,
                                 plain_objects=plain_objects, no_walls=no_walls,
-                                object_scale=object_scale)
+                                object_scale=object_scale, grey_floor=grey_floor)
       shaped = spec
       if room_objects != "chairs":
         twin = np.random.Generator(type(rng.bit_generator)())
@@ -155,7 +155,8 @@ def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size
         shaped = sample_room_layout(twin, min_objects=min_objects, max_objects=max_objects,
                                     plain_background=plain_background,
                                     plain_objects=plain_objects, no_walls=no_walls,
-                                    room_objects=room_objects, object_scale=object_scale)
+                                    room_objects=room_objects, object_scale=object_scale,
+                                    grey_floor=grey_floor)
     cameras = tuple(sample_cameras(rng, views))
     c2w = np.stack([camera_to_world(c) for c in cameras])
     arrays = scene_arrays(spec)
@@ -185,12 +186,12 @@ def _generate_scene(rng: np.random.Generator, *, family: str, views: int, image_
                     supersample: int, max_attempts: int, min_objects: int, max_objects: int,
                     object_scale: float, plain_background: bool = False,
                     plain_objects: bool = False, no_walls: bool = False,
-                    room_objects: str = "chairs") -> GeneratedScene:
+                    room_objects: str = "chairs", grey_floor: bool = False) -> GeneratedScene:
   spec, cameras, c2w, attempts = _draw_scene(
       rng, family=family, views=views, image_size=image_size, supersample=supersample,
       max_attempts=max_attempts, min_objects=min_objects, max_objects=max_objects,
       object_scale=object_scale, plain_background=plain_background, plain_objects=plain_objects,
-      no_walls=no_walls, room_objects=room_objects)
+      no_walls=no_walls, room_objects=room_objects, grey_floor=grey_floor)
   rgb, label, depth = _render_scene(spec, c2w, image_size=image_size, supersample=supersample)
   return GeneratedScene(spec=spec, cameras=cameras, cam_to_world=c2w,
                         intrinsics=uorf_intrinsics(image_size), rgb=rgb, label=label, depth=depth,
@@ -236,6 +237,7 @@ class _SceneTask:
   plain_objects: bool = False
   no_walls: bool = False
   room_objects: str = "chairs"
+  grey_floor: bool = False
 
 
 def _write_scene(task: _SceneTask) -> dict:
@@ -246,7 +248,7 @@ def _write_scene(task: _SceneTask) -> dict:
                          max_objects=task.max_objects, object_scale=task.object_scale,
                          plain_background=task.plain_background,
                          plain_objects=task.plain_objects, no_walls=task.no_walls,
-                         room_objects=task.room_objects)
+                         room_objects=task.room_objects, grey_floor=task.grey_floor)
   k_norm = normalised_intrinsics(scene.intrinsics, task.image_size)
   stems = []
   for a in range(task.views):
@@ -282,7 +284,7 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
                   num_scenes: int, supersample: int, min_objects: int = 0, max_objects: int = 0,
                   object_scale: float = 1.0, plain_background: bool = False,
                   plain_objects: bool = False, no_walls: bool = False,
-                  room_objects: str = "chairs") -> dict:
+                  room_objects: str = "chairs", grey_floor: bool = False) -> dict:
   k = uorf_intrinsics(image_size)
   header = {
       "format": "slotlifter_jax.generated", "generator_version": GENERATOR_VERSION,
@@ -310,7 +312,7 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
   # Only non-default sets record their object options, so default dataset.json files are unchanged
   # (and _existing_split_matches tells the two apart by the key's presence).
   if not is_default_objects(family, min_objects, max_objects, object_scale, plain_background,
-                            plain_objects, no_walls, room_objects):
+                            plain_objects, no_walls, room_objects, grey_floor):
     lo, hi = object_count_range(family, min_objects, max_objects)
     header["objects"] = {"min_objects": lo, "max_objects": hi,
                          "object_scale": float(object_scale)}
@@ -322,6 +324,8 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
       header["objects"]["no_walls"] = True
     if room_objects != "chairs":
       header["objects"]["room_objects"] = room_objects
+    if grey_floor:
+      header["objects"]["grey_floor"] = True
   return header
 
 
@@ -343,7 +347,8 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
                      overwrite: bool = False, supersample: int = 2, min_objects: int = 0,
                      max_objects: int = 0, object_scale: float = 1.0,
                      plain_background: bool = False, plain_objects: bool = False,
-                     no_walls: bool = False, room_objects: str = "chairs") -> dict:
+                     no_walls: bool = False, room_objects: str = "chairs",
+                     grey_floor: bool = False) -> dict:
   """Writes <out_dir>/<subset>_{train,val,dev,test} and returns a summary (seconds per split).
 
   `num_dev` (None: as many as `num_test`) scenes of the development split, the former test split
@@ -370,10 +375,10 @@ def generate_dataset(out_dir: str, *, family: str, num_train: int, num_val: int,
   if views < 1 or image_size < 8:
     raise ValueError(f"need views ≥ 1 and image_size ≥ 8, got {views}, {image_size}")
   check_object_options(family, min_objects, max_objects, object_scale, plain_background,
-                       plain_objects, no_walls, room_objects)
+                       plain_objects, no_walls, room_objects, grey_floor)
   objects = dict(min_objects=min_objects, max_objects=max_objects, object_scale=object_scale,
                  plain_background=plain_background, plain_objects=plain_objects,
-                 no_walls=no_walls, room_objects=room_objects)
+                 no_walls=no_walls, room_objects=room_objects, grey_floor=grey_floor)
   subset = SUBSETS[family]
   if num_dev is None:
     num_dev = num_test
