@@ -5,8 +5,8 @@ Paper settings (docs/method.md §1–2): 128×128, 1 source view, K = 5, D = 64,
 Run: python -m slotlifter_jax.main --config=configs/room_chair.py[:scene|:paper_cpu|:smoke] --workdir=DIR
 Real data: --config.data.root=/path/to/uorf_data (holding room_chair_{train,test}).
 `:scene` samples inside the room's own slab (below) and trains, but does not split the embedded
-room set: no rung of the room ladder split within 10 000 steps (experiments/journal/2026-12.md,
-"Textured rooms: the room ladder"). The rungs are data options: data.plain_background,
+room set: no rung of the room ladder splits it (experiments/journal/2026-12.md, "Textured rooms:
+the room ladder" and the sections after it). The rungs are data options: data.plain_background,
 data.plain_objects, data.no_walls, data.room_objects (chairs, solid or boxes),
 data.object_scale (≤ 1: smaller chairs), data.grey_floor, data.min_objects/max_objects;
 data.ray_sampling=floor_parallax draws rays towards the chairs on a textured floor.

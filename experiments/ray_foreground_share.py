@@ -1,6 +1,7 @@
 """Share of training rays that land on objects, per ray-sampling mode (data/pipeline.py).
 
-  python experiments/ray_foreground_share.py [--config=configs/clevr.py:paper_cpu] [--scenes=20]
+  python experiments/ray_foreground_share.py [--config=configs/clevr.py:paper_cpu] [--scenes=20] \
+      [--set=data.room_objects=boxes ...]
 
 Draws 50 training batches from the validation scenes (they have ground-truth masks; the sampler
 never looks at them) and prints the fraction of rays whose pixel is foreground, for uniform,
@@ -14,6 +15,7 @@ ones that look like the grey floor) and coloured ones.
 from __future__ import annotations
 
 import argparse
+import ast
 import os
 import sys
 
@@ -51,8 +53,23 @@ def main():
   parser.add_argument("--config", default="configs/clevr.py:paper_cpu")
   parser.add_argument("--scenes", type=int, default=20)
   parser.add_argument("--batches", type=int, default=50)
+  parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                      help="a dotted config override, e.g. data.object_scale=0.6 (repeatable)")
   args = parser.parse_args()
-  config = embedded.resolve_data(study_common.load_config(args.config))
+  overrides = {}
+  for item in args.set:
+    key, sep, value = item.partition("=")
+    if not sep:
+      parser.error(f"--set={item!r}: expected KEY=VALUE")
+    try:
+      overrides[key] = ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+      overrides[key] = value  # a bare word: a string such as boxes
+  try:
+    config = study_common.apply_overrides(study_common.load_config(args.config), overrides)
+  except study_common.StudyError as e:
+    parser.error(str(e))
+  config = embedded.resolve_data(config)
   scenes = registry.load_split(config.data, "val", max_scenes=args.scenes)
   print(f"{len(scenes)} val scenes of {config.data.root}: foreground share of pixels "
         f"{np.mean([(s.masks > 0).mean() for s in scenes]):.3f}")
@@ -77,6 +94,9 @@ def main():
     for kind, values in object_oversampling(scene.images, scene.masks, mix=0.5).items():
       factors[kind] += values
   for kind, values in factors.items():
+    if not values:
+      print(f"contrast_mix=0.5, {kind:8s} objects: none in these scenes")
+      continue
     print(f"contrast_mix=0.5, {kind:8s} objects: pixels drawn {np.median(values):.2f}x as often as "
           f"under uniform sampling (median over {len(values)} object views, 10th percentile "
           f"{np.percentile(values, 10):.2f}x)")
