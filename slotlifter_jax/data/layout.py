@@ -332,10 +332,9 @@ def is_default_objects(family: str, min_objects: int = 0, max_objects: int = 0,
                        plain_objects: bool = False, no_walls: bool = False,
                        room_objects: str = "chairs", grey_floor: bool = False) -> bool:
   """True when the options draw the family's default set (explicit 5 and 7 count as default)."""
-  return not (plain_background or plain_objects or no_walls or grey_floor) and (
-      room_objects == "chairs") and (
-      object_count_range(family, min_objects, max_objects) == object_count_range(family)
-      and object_scale == 1.0)
+  untouched = not (plain_background or plain_objects or no_walls or grey_floor)
+  return untouched and room_objects == "chairs" and object_scale == 1.0 and (
+      object_count_range(family, min_objects, max_objects) == object_count_range(family))
 
 
 # The clevr family's floor, which every clevr scene shares; room scenes may borrow it (grey_floor).
