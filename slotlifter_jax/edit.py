@@ -189,7 +189,8 @@ def render_edit(config: ml_collections.ConfigDict, workdir: str, request: Reques
                 split: str = "test", scene_indices: Sequence[int] = (0,), checkpoint: str = "",
                 params: str = "average", num_orbit_frames: int = 24,
                 progress: bool = True,
-                removal: str = edit_scores.REMOVAL) -> list[tuple[str, str]]:
+                removal: str = edit_scores.REMOVAL,
+                move_background: str = edit_scores.MOVE_BACKGROUND) -> list[tuple[str, str]]:
   """Pictures and an orbit GIF of `request` on each chosen scene (module docstring);
   returns [(panel path, orbit path)]."""
   if not 1 <= num_orbit_frames <= pictures.MAX_ORBIT_FRAMES:
@@ -217,7 +218,8 @@ def render_edit(config: ml_collections.ConfigDict, workdir: str, request: Reques
       rot = _world_rotation(run.config, split, i, scene)
       t_model = edits.world_translation(request.by, rotation=rot,
                                         scene_scale=float(run.config.data.scene_scale))
-      edit = edits.move_edit(request.slot, k, edits.RigidMove.make(t_model), removal)
+      edit = edits.move_edit(request.slot, k, edits.RigidMove.make(t_model), removal,
+                             edit_scores.background_slot(run.config, move_background))
     encoded, sources = renderer.encode(run.params, scene)
     cams = dict(cam_to_world=scene.cam_to_world, intrinsics=scene.intrinsics,
                 image_size=scene.image_size)

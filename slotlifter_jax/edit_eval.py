@@ -124,7 +124,7 @@ def _unedited(renderer: EditRenderer, params, manifest: dict, index: int, scene:
 
 def _score_one(renderer: EditRenderer, params, u: _Unedited, *, kind: str, label: int, slot: int,
                translation: Optional[np.ndarray], scale: float, num_slots: int,
-               removal: str = edit_scores.REMOVAL):
+               removal: str = edit_scores.REMOVAL, background: Optional[int] = None):
   """(figures, edited novel views (colour, depth, segmentation), edited ground truth)."""
   scene, novel, src = u.scene, u.novel, list(u.scene.source_indices)
   if kind == "remove":
@@ -134,7 +134,7 @@ def _score_one(renderer: EditRenderer, params, u: _Unedited, *, kind: str, label
     spec = scene_edits.translate_object(u.drawn.spec, label, translation)
     t_model = edits.world_translation((translation[0], translation[1], 0.0),
                                       rotation=u.rotation, scene_scale=scale)
-    edit = edits.move_edit(slot, num_slots, edits.RigidMove.make(t_model), removal)
+    edit = edits.move_edit(slot, num_slots, edits.RigidMove.make(t_model), removal, background)
   truth = scene_edits.render(u.drawn, spec)
   edited = renderer.render(params, u.encoded, u.sources, edit,
                            cam_to_world=scene.cam_to_world[novel],
@@ -166,11 +166,13 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
                 checkpoint: str = "", params: str = "average", max_scenes: Optional[int] = None,
                 overwrite: bool = False, progress: bool = True,
                 match_iou: float = edit_scores.MATCH_IOU,
-                removal: str = edit_scores.REMOVAL) -> dict:
+                removal: str = edit_scores.REMOVAL,
+                move_background: str = edit_scores.MOVE_BACKGROUND) -> dict:
   """Scores removal and translation of every object of the first scenes (module docstring);
   returns the report it writes. `match_iou` other than MATCH_IOU is for tests of the scoring path
-  on untrained runs; `removal` (rendering.edits.REMOVALS) how a slot leaves its place. The report
-  records the values used."""
+  on untrained runs; `removal` (rendering.edits.REMOVALS) how a slot leaves its place;
+  `move_background` (edit_scores.MOVE_BACKGROUNDS) whether a move carries the background slot.
+  The report records the values used."""
   t_start = time.perf_counter()
   out_dir = os.path.join(workdir, "edit", split)
   metrics_path = os.path.join(out_dir, "edit_metrics.json")
@@ -183,6 +185,7 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
     raise EditFlagError("--mode=edit", "scores need the ground-truth masks and depth of the "
                                        "embedded set (data.has_masks)")
   scale = float(run.config.data.scene_scale)
+  background = edit_scores.background_slot(run.config, move_background)
   renderer = EditRenderer(run.model, run.config)
   k = run.model.num_slots
   records = {kind: [] for kind in edit_scores.EDIT_KINDS}
@@ -214,7 +217,7 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
           continue
         figures, edited, truth = _score_one(renderer, run.params, u, kind=kind, label=obj.label,
                                             slot=slot, translation=t, scale=scale, num_slots=k,
-                                            removal=removal)
+                                            removal=removal, background=background)
         records[kind].append(figures)
         moved = {"translation": [float(t[0]), float(t[1]), 0.0]} if kind == "move" else {}
         log.append(dict(base, kind=kind, figures=figures, **moved))
@@ -228,6 +231,8 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
   report = _report_head(run, split, t_start)
   report["settings"]["match_iou"] = float(match_iou)
   report["settings"]["removal"] = removal
+  report["settings"]["move_background"] = move_background
+  report["settings"]["background_slot"] = background
   for kind in edit_scores.EDIT_KINDS:
     report[kind] = edit_scores.summarize_kind(records[kind], skipped=skipped[kind],
                                               no_translation=no_translation,
@@ -273,7 +278,8 @@ def format_summary(report: dict) -> str:
 def run(config: ml_collections.ConfigDict, workdir: str, *, split: str, scenes: str,
         remove_slot: Optional[int], move_slot: Optional[int], by: str, checkpoint: str,
         params: str, max_scenes: Optional[int], overwrite: bool, orbit_frames: int,
-        removal: str = edit_scores.REMOVAL) -> str:
+        removal: str = edit_scores.REMOVAL,
+        move_background: str = edit_scores.MOVE_BACKGROUND) -> str:
   """The `--mode=edit` command: the scores of the split (this module), or with --remove_slot or
   --move_slot one edit of the --scenes (edit.render_edit); returns what it prints."""
   request = edit.parse_request(num_slots=int(config.model.num_slots), remove_slot=remove_slot,
@@ -281,8 +287,9 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, split: str, scenes: 
   if request is None:
     return format_summary(score_split(config, workdir, split=split, checkpoint=checkpoint,
                                       params=params, max_scenes=max_scenes, overwrite=overwrite,
-                                      removal=removal))
+                                      removal=removal, move_background=move_background))
   written = edit.render_edit(config, workdir, request, split=split,
                              scene_indices=edit.parse_scenes(scenes), checkpoint=checkpoint,
-                             params=params, num_orbit_frames=orbit_frames, removal=removal)
+                             params=params, num_orbit_frames=orbit_frames, removal=removal,
+                             move_background=move_background)
   return "\n".join(f"{p}\n  {g}" for p, g in written)

@@ -44,6 +44,22 @@ MOVE_SEED = 8_062_024
 # density in 0 % and 3 % (experiments/results/edit_clevr_val_removal_*.json).
 REMOVAL = "delete"
 
+# What a move does with the background slot (rendering/edits.py, carried_shares): "carry" it
+# along the rays the moved slot covers, or let it "stay" where it is. Chosen on the validation
+# split (docs/editing.md §4). The background slot is the one the locality constraint reserves
+# (docs/method.md §1.4): real slot 0 of a model trained with it, none otherwise.
+MOVE_BACKGROUNDS = ("stay", "carry")
+MOVE_BACKGROUND = "carry"
+
+
+def background_slot(config, move_background: str) -> Optional[int]:
+  """The slot a move carries (`MOVE_BACKGROUNDS`), or None."""
+  if move_background not in MOVE_BACKGROUNDS:
+    raise ValueError(f"move_background must be one of {MOVE_BACKGROUNDS}, got {move_background!r}")
+  if move_background == "stay" or int(config.train.locality_steps) <= 0:
+    return None
+  return 0
+
 EDIT_KINDS = ("remove", "move")
 # Per-edit figures, each also computed for the unedited rendering as `<name>_baseline`.
 FIGURES = ("psnr", "ssim", "psnr_changed", "psnr_changed_seen", "psnr_changed_unseen", "iou")

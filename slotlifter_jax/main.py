@@ -56,6 +56,9 @@ flags.DEFINE_string("by", "", "edit: --move_slot's translation dx,dy,dz in the d
 flags.DEFINE_enum("removal", None, ["zero", "delete"], "edit: how a removed or moved slot "
                   "leaves its place: zero its density, or delete it from the slot set the "
                   "others are decoded with (default: edit_scores.REMOVAL; docs/editing.md §4).")
+flags.DEFINE_enum("move_background", None, ["stay", "carry"], "edit: whether a moved slot "
+                  "carries the background slot along the rays it covers (default: "
+                  "edit_scores.MOVE_BACKGROUND; docs/editing.md §4).")
 flags.mark_flags_as_required(["config", "workdir"])
 FLAGS = flags.FLAGS
 
@@ -80,7 +83,8 @@ def main(argv):
   if not FLAGS.distributed and any(
       FLAGS[f].present for f in ("coordinator_address", "num_processes", "process_id")):
     sys.exit("error: --coordinator_address, --num_processes and --process_id need --distributed")
-  stray = [f for f in ("remove_slot", "move_slot", "by", "removal") if FLAGS[f].present]
+  stray = [f for f in ("remove_slot", "move_slot", "by", "removal", "move_background")
+           if FLAGS[f].present]
   if stray and FLAGS.mode != "edit":
     sys.exit(f"error: --{stray[0]}: only with --mode=edit")
   # Before JAX starts (seconds on a CPU) and before the processes of a --distributed launch
@@ -133,7 +137,9 @@ def main(argv):
                           checkpoint=FLAGS.checkpoint, params=FLAGS.params,
                           max_scenes=FLAGS.max_scenes, overwrite=FLAGS.overwrite,
                           orbit_frames=FLAGS.orbit_frames,
-                          **({"removal": FLAGS.removal} if FLAGS.removal else {})))
+                          **({"removal": FLAGS.removal} if FLAGS.removal else {}),
+                          **({"move_background": FLAGS.move_background}
+                             if FLAGS.move_background else {})))
       except edit.EditFlagError as e:
         sys.exit(f"error: {e}")  # the message starts with the flag
     else:

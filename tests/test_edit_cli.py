@@ -79,6 +79,7 @@ def test_edit_scores_a_split_from_the_command_line(run_dir):
   assert "git_commit" in prov
   assert report["settings"]["match_iou"] == edit_scores.MATCH_IOU
   assert report["settings"]["removal"] == edit_scores.REMOVAL
+  assert report["settings"]["move_background"] == edit_scores.MOVE_BACKGROUND
   # Again without --overwrite: refused, the file kept.
   with open(path, "rb") as f:
     kept = f.read()
@@ -98,6 +99,9 @@ def test_edit_scores_a_split_from_the_command_line(run_dir):
   assert code != 0 and out.strip().splitlines()[-1] == "error: --remove_slot: only with --mode=edit"
   code, out = _main(f"--workdir={run_dir}", "--mode=eval", "--removal=delete")
   assert code != 0 and out.strip().splitlines()[-1] == "error: --removal: only with --mode=edit"
+  code, out = _main(f"--workdir={run_dir}", "--mode=eval", "--move_background=stay")
+  assert code != 0 and (out.strip().splitlines()[-1]
+                        == "error: --move_background: only with --mode=edit")
   assert _tree_digest(os.path.join(run_dir, "checkpoints")) == checkpoints
   with open(path, "rb") as f:
     assert f.read() == kept
@@ -126,6 +130,13 @@ def test_scoring_path_and_one_edit_pictures(run_dir, tmp_path):
                                   match_iou=0.0, removal="delete")
   assert deleted["settings"]["removal"] == "delete"
   assert [r.get("slot") for r in deleted["edits"]] == [r.get("slot") for r in report["edits"]]
+  # A move that leaves the background where it is scores the same edits, and says so; the
+  # smoke model is trained with the locality constraint, so carrying names slot 0.
+  stay = edit_eval.score_split(config, run_dir, max_scenes=1, overwrite=True, progress=False,
+                               match_iou=0.0, move_background="stay")
+  assert stay["settings"]["move_background"] == "stay" and stay["settings"]["background_slot"] is None
+  assert report["settings"]["background_slot"] == (0 if config.train.locality_steps > 0 else None)
+  assert [r.get("slot") for r in stay["edits"]] == [r.get("slot") for r in report["edits"]]
   # One edit of chosen scenes: pictures and an orbit, no metrics file touched.
   metrics_path = os.path.join(run_dir, "edit", "test", "edit_metrics.json")
   with open(metrics_path, "rb") as f:

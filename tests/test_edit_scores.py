@@ -4,6 +4,7 @@
 import dataclasses
 import math
 
+import ml_collections
 import numpy as np
 import pytest
 
@@ -180,3 +181,13 @@ def test_world_translations_turn_with_the_source_azimuth_frame():
   assert turned[0] > 0 and abs(turned[1]) < 1e-5 and turned[2] == pytest.approx(eye[2])
   np.testing.assert_allclose(rot @ rot.T, np.eye(3), atol=1e-5)
   np.testing.assert_allclose(turned, scene.cam_to_world[0, :3, 3], atol=1e-5)
+
+
+def test_a_move_carries_the_slot_the_locality_constraint_reserves_for_the_background():
+  config = ml_collections.ConfigDict({"train": {"locality_steps": 50_000}})
+  assert edit_scores.background_slot(config, "carry") == 0
+  assert edit_scores.background_slot(config, "stay") is None
+  config.train.locality_steps = 0  # no slot was made the background: nothing to carry
+  assert edit_scores.background_slot(config, "carry") is None
+  with pytest.raises(ValueError, match="move_background"):
+    edit_scores.background_slot(config, "drag")

@@ -89,8 +89,9 @@ def test_removing_a_slot_takes_away_its_density_and_mass(mode):
 @pytest.mark.parametrize("mode", MODES)
 def test_moving_by_zero_is_the_plain_render(mode):
   out = _plain(mode)
-  for k in (0, K - 1):
-    r = _render_edit(mode, edits.Edit.moving(k, K, edits.RigidMove.make((0.0, 0.0, 0.0))))
+  for k, background in ((0, None), (K - 1, None), (K - 1, 0)):  # (K − 1, 0): carrying slot 0
+    r = _render_edit(mode, edits.Edit.moving(k, K, edits.RigidMove.make((0.0, 0.0, 0.0)),
+                                             background=background))
     np.testing.assert_allclose(r.colour, out.coarse.colour, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(r.depth, out.coarse.depth, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(r.segmentation, out.coarse.segmentation, rtol=1e-5, atol=1e-6)
@@ -215,11 +216,11 @@ def _constructed_pass(num_samples=64, near=0.5, far=3.5):
   return render_pass
 
 
-def _rays(seed, n=200):
+def _rays(seed, n=200, around=(0.0, 0.0, 0.0)):
   rng = np.random.default_rng(seed)
   origins = np.stack([np.full(n, 1.6), np.zeros(n), np.full(n, 1.2)], -1) + rng.normal(
       scale=0.05, size=(n, 3))
-  targets = rng.uniform(-0.4, 0.4, size=(n, 3)) * [1, 1, 0.3]
+  targets = np.asarray(around) + rng.uniform(-0.4, 0.4, size=(n, 3)) * [1, 1, 0.3]
   d = targets - origins
   return origins, d / np.linalg.norm(d, axis=-1, keepdims=True)
 
@@ -301,6 +302,73 @@ def test_a_moved_slot_owns_the_pixels_where_it_now_stands():
   on_blob = clear & (ref[:, 1] > ref[:, 0])
   assert on_blob.sum() >= 20 and (clear & ~on_blob).sum() >= 20  # both kinds of ray are tested
   np.testing.assert_array_equal(seg[clear].argmax(-1), ref[clear].argmax(-1))
+
+
+def _haze_pass(centre, haze=0.1, clearing=0.5, top=0.5):
+  """The background slot as the model renders it: a floor at z = 0 under a haze through the slab
+  0 ≤ z ≤ `top`, cleared in a vertical cylinder of radius `clearing` around the blob centred at
+  `centre` (slot 1, whose W is a membership as in `_membership_pass`)."""
+  def render_pass(origins, directions, z):
+    if z is None:
+      z = jnp.broadcast_to(jnp.linspace(0.5, 3.5, 128), origins.shape[:-1] + (128,))
+    x = origins[..., None, :] + z[..., None] * directions[..., None, :]
+    c = jnp.asarray(centre, jnp.float32)
+    r2 = (x[..., 0] - c[0]) ** 2 + (x[..., 1] - c[1]) ** 2
+    in_slab = (x[..., 2] >= 0.0) & (x[..., 2] <= top)
+    background = 30.0 * jnp.exp(-(x[..., 2] / 0.05) ** 2) + haze * in_slab * (
+        1.0 - jnp.exp(-(r2 / clearing ** 2) ** 4))
+    q = (x - c) / BLOB_AXES
+    inside = jnp.exp(-jnp.sum(q * q, -1))
+    sigma = jnp.stack([background, 60.0 * inside], -1)
+    member = 1.0 - jnp.exp(-1000.0 * inside)
+    weights = jnp.stack([jnp.zeros_like(inside), 1.0 - member, member], -1)
+    colour = jnp.broadcast_to(jnp.asarray([0.5, 0.5, 0.5]), x.shape)
+    return edits.SlotField(slot_density=sigma, colour=colour, weights=weights), z
+  return render_pass
+
+
+def test_a_moved_slot_carries_the_background_that_cleared_the_haze_in_front_of_it():
+  """A background slot that renders the floor as a haze, cleared only around the object (as the
+  trained models do, docs/editing.md §7): without carrying, the haze at the blob's new place
+  takes its pixels; carrying the background along the rays the blob covers gives the
+  segmentation of the scene drawn with the blob at its new place, wherever that is clear."""
+  t = np.array([-0.7, 0.75, 0.0])  # out of the clearing around where it stood
+  centre = BLOB_CENTRE  # on the floor, under the haze
+  origins, dirs = _rays(3, n=400, around=centre + t)
+  kw = dict(origins=jnp.asarray(origins), directions=jnp.asarray(dirs), far=3.5,
+            density_scale=25.0)
+  truth = edits.edit_rays(_haze_pass(centre + t), edits.Edit.identity(2), **kw)
+  ref = np.asarray(truth.segmentation)
+  clear = np.abs(ref[:, 1] - ref[:, 0]) > 0.2
+  on_blob = clear & (ref[:, 1] > ref[:, 0])
+  assert on_blob.sum() >= 20 and (clear & ~on_blob).sum() >= 20
+  move = edits.RigidMove.make(t)
+  stay = edits.edit_rays(_haze_pass(centre), edits.Edit.moving(1, 2, move), **kw)
+  lost = np.asarray(stay.segmentation)[on_blob].argmax(-1) != 1
+  assert lost.mean() > 0.5  # the failure carrying is for
+  carried = edits.edit_rays(_haze_pass(centre), edits.Edit.moving(1, 2, move, background=0), **kw)
+  np.testing.assert_array_equal(np.asarray(carried.segmentation)[clear].argmax(-1),
+                                ref[clear].argmax(-1))
+
+
+def test_carried_shares_follow_the_moved_slots_opacity_alone():
+  """NumPy: β = 1 − Π(1 − α) over the moved slots' density; the background slot's share is
+  1 − β from the plain pass and β from the moved pass, every other slot keeps its one pass."""
+  rng = np.random.default_rng(4)
+  k, s = 4, 12
+  sigma = rng.uniform(0.0, 0.3, size=(5, s, k))
+  z = np.sort(rng.uniform(0.5, 3.0, size=(5, s)), axis=-1)
+  owner = np.array([edits.PLAIN, edits.MOVED, edits.PLAIN, edits.REMOVED])
+  field = edits.SlotField(slot_density=jnp.asarray(sigma, jnp.float32),
+                          colour=jnp.zeros((5, s, 3)), weights=jnp.zeros((5, s, k + 1)))
+  plain, moved = edits.carried_shares(jnp.asarray(owner), 0, field, z=jnp.asarray(z, jnp.float32),
+                                      density_scale=25.0)
+  delta = np.concatenate([np.diff(z, axis=-1), np.zeros((5, 1))], -1)
+  beta = 1.0 - np.exp(-25.0 * np.sum(sigma[..., 1] * delta, -1))  # only slot 1 moves
+  np.testing.assert_allclose(np.asarray(moved)[:, 0, 0], beta, rtol=1e-5, atol=1e-6)
+  np.testing.assert_allclose(np.asarray(plain)[:, 0, 0], 1.0 - beta, rtol=1e-5, atol=1e-6)
+  np.testing.assert_array_equal(np.asarray(plain)[:, 0, 1:], np.tile([0.0, 1.0, 0.0], (5, 1)))
+  np.testing.assert_array_equal(np.asarray(moved)[:, 0, 1:], np.tile([1.0, 0.0, 0.0], (5, 1)))
 
 
 # ---------------------------------------------------------------------------------------------

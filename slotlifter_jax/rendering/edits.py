@@ -45,6 +45,9 @@ contributes.
   features are gathered where T⁻¹(x) projects into the source views, i.e. where the source view
   saw the object before it moved. Slot k takes its density (and its share of the colour) from that
   pass, every other slot from the plain pass at x.
+- Carry the background slot with a move (`carried_shares`): on the rays the moved slot covers,
+  in proportion to its opacity there, the background slot comes from the moved pass too, so the
+  air in front of the object stays as clear as the model rendered it where the object stood.
 - Swap slot k between scenes: the second pass is another scene's (its slots and source views) at
   the same rays; slot k comes from it. With the background slot this puts one scene's objects on
   another's background.
@@ -89,15 +92,22 @@ def field_of(out: model_lib.RenderOutput) -> SlotField:
 
 
 def composite(fields: Sequence[SlotField], owner, *, z: jax.Array, far, density_scale: float,
-              last_delta: Optional[jax.Array] = None) -> volume.RenderResult:
+              last_delta: Optional[jax.Array] = None,
+              shares: Optional[Sequence[jax.Array]] = None) -> volume.RenderResult:
   """Volume rendering of slots drawn from several passes (module docstring).
 
   fields: P passes over the same samples; owner: [K] ints, the pass slot k comes from, or
   REMOVED; z: [..., S] the passes' common sample depths; far, density_scale, last_delta as in
-  `volume.volume_render`. The segmentation is over the K real slots, W̃ normalised.
+  `volume.volume_render`. shares: instead of owner, P arrays broadcastable to [..., S, K], the
+  share of each slot's density, weights and colour each pass gives at each sample
+  (`carried_shares`); owner is the special case of one-hot shares. The segmentation is over the K
+  real slots, W̃ normalised.
   """
-  owner = jnp.asarray(owner, jnp.int32)  # [K]
-  kept = [(owner == p).astype(f.slot_density.dtype) for p, f in enumerate(fields)]  # P × [K]
+  if shares is None:
+    owner = jnp.asarray(owner, jnp.int32)  # [K]
+    kept = [(owner == p).astype(f.slot_density.dtype) for p, f in enumerate(fields)]  # P × [K]
+  else:
+    kept = list(shares)
   per_pass = [jnp.sum(f.slot_density * m, axis=-1) for f, m in zip(fields, kept)]  # P × [..., S]
   density = sum(per_pass[1:], per_pass[0])  # [..., S]
   safe = jnp.where(density > 0, density, 1.0)
@@ -179,8 +189,10 @@ class Edit:
   owner: jax.Array  # [K] int32: PLAIN, MOVED or REMOVED
   move: RigidMove
   deleted: jax.Array = 0  # [] int32: the slot the plain pass decodes without, when `delete`
+  background: jax.Array = 0  # [] int32: the background slot a move carries, when `carry`
   has_move: bool = flax.struct.field(pytree_node=False, default=False)
   delete: bool = flax.struct.field(pytree_node=False, default=False)
+  carry: bool = flax.struct.field(pytree_node=False, default=False)
 
   @staticmethod
   def identity(num_slots: int) -> "Edit":
@@ -205,12 +217,19 @@ class Edit:
     return Edit(owner=jnp.asarray(owner), move=RigidMove.make((0.0, 0.0, 0.0)))
 
   @staticmethod
-  def moving(slot: int, num_slots: int, move: RigidMove, *, delete: bool = False) -> "Edit":
-    """Move `slot`; with `delete` the other slots are decoded without it, as `delete_slot`."""
+  def moving(slot: int, num_slots: int, move: RigidMove, *, delete: bool = False,
+             background: Optional[int] = None) -> "Edit":
+    """Move `slot`; with `delete` the other slots are decoded without it, as `delete_slot`; with
+    a `background` slot other than `slot`, the move carries it along the rays the moved slot
+    covers (`carried_shares`)."""
     owner = np.zeros(num_slots, np.int32)
     owner[_check_slots([slot], num_slots)] = MOVED
+    carry = background is not None and int(background) != int(slot)
+    if carry:
+      _check_slots([background], num_slots)
     return Edit(owner=jnp.asarray(owner), move=move, has_move=True,
-                deleted=jnp.asarray(slot, jnp.int32), delete=delete)
+                deleted=jnp.asarray(slot, jnp.int32), delete=delete,
+                background=jnp.asarray(background if carry else 0, jnp.int32), carry=carry)
 
 
 # How a removal takes a slot away (docs/editing.md §4): "zero" its density and weights in the
@@ -225,10 +244,12 @@ def removal_edit(slot: int, num_slots: int, removal: str) -> Edit:
                                                                                    num_slots)
 
 
-def move_edit(slot: int, num_slots: int, move: RigidMove, removal: str) -> Edit:
-  """Move one slot, taking it from where it stood the `removal` way (REMOVALS)."""
+def move_edit(slot: int, num_slots: int, move: RigidMove, removal: str,
+              background: Optional[int] = None) -> Edit:
+  """Move one slot, taking it from where it stood the `removal` way (REMOVALS) and carrying the
+  `background` slot along the rays it covers, if one is given (`carried_shares`)."""
   _check_removal(removal)
-  return Edit.moving(slot, num_slots, move, delete=removal == "delete")
+  return Edit.moving(slot, num_slots, move, delete=removal == "delete", background=background)
 
 
 def _check_removal(removal: str) -> None:
@@ -257,11 +278,41 @@ def edit_rays(render_pass: Callable, edit: Edit, *, origins: jax.Array, directio
   """
   plain, z = render_pass(origins, directions, None)
   fields = [plain]
+  shares = None
   if edit.has_move:
     o, d = moved_rays(origins, directions, edit.move)
     moved, _ = (moved_pass or render_pass)(o, d, z)
     fields.append(moved)
-  return composite(fields, edit.owner, z=z, far=far, density_scale=density_scale)
+    if edit.carry:
+      shares = carried_shares(edit.owner, edit.background, moved, z=z,
+                              density_scale=density_scale)
+  return composite(fields, edit.owner, z=z, far=far, density_scale=density_scale, shares=shares)
+
+
+def carried_shares(owner, background, moved: SlotField, *, z: jax.Array,
+                   density_scale: float) -> list[jax.Array]:
+  """The per-sample shares (`composite`) of a move that carries the background slot: [PLAIN,
+  MOVED], each [..., 1, K].
+
+  The moved slots (owner MOVED) and every other slot keep their pass; the background slot, owned
+  by PLAIN, comes from the moved pass in proportion β, the opacity the moved slots have alone
+  along the ray (α from their density at the depths z, as `volume`), and from the plain pass in
+  proportion 1 − β. Why: the background slot renders the floor as a haze through the scene slab
+  and clears it in front of an object only where the model saw one; at the moved object's new
+  place the plain pass has the haze, which hides the object and takes its pixels
+  (docs/editing.md §7). On the rays the moved object covers, the background comes with it from
+  where it stood: the air in front of it clear, the floor under it its own. With a move by zero
+  both passes are one and the shares change nothing.
+  """
+  owner = jnp.asarray(owner, jnp.int32)  # [K]
+  moved_mask = (owner == MOVED).astype(moved.slot_density.dtype)  # [K]
+  density = jnp.sum(moved.slot_density * moved_mask, axis=-1)  # [..., S]
+  alpha = volume.alpha_from_density(density=density, z=z, density_scale=density_scale)
+  beta = 1.0 - jnp.prod(1.0 - alpha, axis=-1)  # [...] the moved slots' opacity alone
+  is_background = jax.nn.one_hot(background, owner.shape[0], dtype=density.dtype)  # [K]
+  plain_mask = (owner == PLAIN).astype(density.dtype)
+  carried = beta[..., None, None] * is_background  # [..., 1, K]
+  return [plain_mask - carried, moved_mask + carried]
 
 
 def without_slot(slots: jax.Array, slot) -> jax.Array:
