@@ -190,7 +190,8 @@ def render_edit(config: ml_collections.ConfigDict, workdir: str, request: Reques
                 params: str = "average", num_orbit_frames: int = 24,
                 progress: bool = True,
                 removal: str = edit_scores.REMOVAL,
-                move_background: str = edit_scores.MOVE_BACKGROUND) -> list[tuple[str, str]]:
+                move_background: str = edit_scores.MOVE_BACKGROUND,
+                uncovered: str = edit_scores.UNCOVERED) -> list[tuple[str, str]]:
   """Pictures and an orbit GIF of `request` on each chosen scene (module docstring);
   returns [(panel path, orbit path)]."""
   if not 1 <= num_orbit_frames <= pictures.MAX_ORBIT_FRAMES:
@@ -208,18 +209,21 @@ def render_edit(config: ml_collections.ConfigDict, workdir: str, request: Reques
                                        "instead")
   renderer = EditRenderer(run.model, run.config)
   k = run.model.num_slots
+  background = edit_scores.background_slot(run.config)
+  carry = background if move_background == "carry" else None
+  fill = background if uncovered == "background" else None
   out_dir = os.path.join(workdir, "edit", split)
   written = []
   for i in tqdm(indices, desc=f"edit {split}", unit="scene", disable=not progress):
     scene = run.scenes[i]
     if request.kind == "remove":
-      edit = edits.removal_edit(request.slot, k, removal)
+      edit = edits.removal_edit(request.slot, k, removal).filling(fill)
     else:
       rot = _world_rotation(run.config, split, i, scene)
       t_model = edits.world_translation(request.by, rotation=rot,
                                         scene_scale=float(run.config.data.scene_scale))
       edit = edits.move_edit(request.slot, k, edits.RigidMove.make(t_model), removal,
-                             edit_scores.background_slot(run.config, move_background))
+                             carry).filling(fill)
     encoded, sources = renderer.encode(run.params, scene)
     cams = dict(cam_to_world=scene.cam_to_world, intrinsics=scene.intrinsics,
                 image_size=scene.image_size)

@@ -124,17 +124,19 @@ def _unedited(renderer: EditRenderer, params, manifest: dict, index: int, scene:
 
 def _score_one(renderer: EditRenderer, params, u: _Unedited, *, kind: str, label: int, slot: int,
                translation: Optional[np.ndarray], scale: float, num_slots: int,
-               removal: str = edit_scores.REMOVAL, background: Optional[int] = None):
+               removal: str = edit_scores.REMOVAL, carry: Optional[int] = None,
+               fill: Optional[int] = None):
   """(figures, edited novel views (colour, depth, segmentation), edited ground truth)."""
   scene, novel, src = u.scene, u.novel, list(u.scene.source_indices)
   if kind == "remove":
     spec = scene_edits.remove_object(u.drawn.spec, label)
-    edit = edits.removal_edit(slot, num_slots, removal)
+    edit = edits.removal_edit(slot, num_slots, removal).filling(fill)
   else:
     spec = scene_edits.translate_object(u.drawn.spec, label, translation)
     t_model = edits.world_translation((translation[0], translation[1], 0.0),
                                       rotation=u.rotation, scene_scale=scale)
-    edit = edits.move_edit(slot, num_slots, edits.RigidMove.make(t_model), removal, background)
+    edit = edits.move_edit(slot, num_slots, edits.RigidMove.make(t_model), removal,
+                           carry).filling(fill)
   truth = scene_edits.render(u.drawn, spec)
   edited = renderer.render(params, u.encoded, u.sources, edit,
                            cam_to_world=scene.cam_to_world[novel],
@@ -167,12 +169,16 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
                 overwrite: bool = False, progress: bool = True,
                 match_iou: float = edit_scores.MATCH_IOU,
                 removal: str = edit_scores.REMOVAL,
-                move_background: str = edit_scores.MOVE_BACKGROUND) -> dict:
+                move_background: str = edit_scores.MOVE_BACKGROUND,
+                uncovered: str = edit_scores.UNCOVERED) -> dict:
   """Scores removal and translation of every object of the first scenes (module docstring);
   returns the report it writes. `match_iou` other than MATCH_IOU is for tests of the scoring path
   on untrained runs; `removal` (rendering.edits.REMOVALS) how a slot leaves its place;
-  `move_background` (edit_scores.MOVE_BACKGROUNDS) whether a move carries the background slot.
-  The report records the values used."""
+  `move_background` (edit_scores.MOVE_BACKGROUNDS) whether a move carries the background slot;
+  `uncovered` (edit_scores.UNCOVERED_MODES) what fills the space an edit uncovers. The report
+  records the values used."""
+  edit_scores.check_choice("move_background", move_background, edit_scores.MOVE_BACKGROUNDS)
+  edit_scores.check_choice("uncovered", uncovered, edit_scores.UNCOVERED_MODES)
   t_start = time.perf_counter()
   out_dir = os.path.join(workdir, "edit", split)
   metrics_path = os.path.join(out_dir, "edit_metrics.json")
@@ -185,7 +191,9 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
     raise EditFlagError("--mode=edit", "scores need the ground-truth masks and depth of the "
                                        "embedded set (data.has_masks)")
   scale = float(run.config.data.scene_scale)
-  background = edit_scores.background_slot(run.config, move_background)
+  background = edit_scores.background_slot(run.config)
+  carry = background if move_background == "carry" else None
+  fill = background if uncovered == "background" else None
   renderer = EditRenderer(run.model, run.config)
   k = run.model.num_slots
   records = {kind: [] for kind in edit_scores.EDIT_KINDS}
@@ -217,7 +225,7 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
           continue
         figures, edited, truth = _score_one(renderer, run.params, u, kind=kind, label=obj.label,
                                             slot=slot, translation=t, scale=scale, num_slots=k,
-                                            removal=removal, background=background)
+                                            removal=removal, carry=carry, fill=fill)
         records[kind].append(figures)
         moved = {"translation": [float(t[0]), float(t[1]), 0.0]} if kind == "move" else {}
         log.append(dict(base, kind=kind, figures=figures, **moved))
@@ -232,6 +240,7 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
   report["settings"]["match_iou"] = float(match_iou)
   report["settings"]["removal"] = removal
   report["settings"]["move_background"] = move_background
+  report["settings"]["uncovered"] = uncovered
   report["settings"]["background_slot"] = background
   for kind in edit_scores.EDIT_KINDS:
     report[kind] = edit_scores.summarize_kind(records[kind], skipped=skipped[kind],
@@ -279,7 +288,8 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, split: str, scenes: 
         remove_slot: Optional[int], move_slot: Optional[int], by: str, checkpoint: str,
         params: str, max_scenes: Optional[int], overwrite: bool, orbit_frames: int,
         removal: str = edit_scores.REMOVAL,
-        move_background: str = edit_scores.MOVE_BACKGROUND) -> str:
+        move_background: str = edit_scores.MOVE_BACKGROUND,
+        uncovered: str = edit_scores.UNCOVERED) -> str:
   """The `--mode=edit` command: the scores of the split (this module), or with --remove_slot or
   --move_slot one edit of the --scenes (edit.render_edit); returns what it prints."""
   request = edit.parse_request(num_slots=int(config.model.num_slots), remove_slot=remove_slot,
@@ -287,9 +297,10 @@ def run(config: ml_collections.ConfigDict, workdir: str, *, split: str, scenes: 
   if request is None:
     return format_summary(score_split(config, workdir, split=split, checkpoint=checkpoint,
                                       params=params, max_scenes=max_scenes, overwrite=overwrite,
-                                      removal=removal, move_background=move_background))
+                                      removal=removal, move_background=move_background,
+                                      uncovered=uncovered))
   written = edit.render_edit(config, workdir, request, split=split,
                              scene_indices=edit.parse_scenes(scenes), checkpoint=checkpoint,
                              params=params, num_orbit_frames=orbit_frames, removal=removal,
-                             move_background=move_background)
+                             move_background=move_background, uncovered=uncovered)
   return "\n".join(f"{p}\n  {g}" for p, g in written)

@@ -45,20 +45,26 @@ MOVE_SEED = 8_062_024
 REMOVAL = "delete"
 
 # What a move does with the background slot (rendering/edits.py, carried_shares): "carry" it
-# along the rays the moved slot covers, or let it "stay" where it is. Chosen on the validation
-# split (docs/editing.md §4). The background slot is the one the locality constraint reserves
-# (docs/method.md §1.4): real slot 0 of a model trained with it, none otherwise.
+# along the rays the moved slot covers, or let it "stay" where it is; and what an edit shows
+# where it uncovers space the scene held opaque (rendering/edits.py, fill_uncovered): the
+# "background" slot's colour, or "black", the renderer's empty ray. Chosen on the validation
+# split (docs/editing.md §4).
 MOVE_BACKGROUNDS = ("stay", "carry")
 MOVE_BACKGROUND = "carry"
+UNCOVERED_MODES = ("black", "background")
+UNCOVERED = "background"
 
 
-def background_slot(config, move_background: str) -> Optional[int]:
-  """The slot a move carries (`MOVE_BACKGROUNDS`), or None."""
-  if move_background not in MOVE_BACKGROUNDS:
-    raise ValueError(f"move_background must be one of {MOVE_BACKGROUNDS}, got {move_background!r}")
-  if move_background == "stay" or int(config.train.locality_steps) <= 0:
-    return None
-  return 0
+def check_choice(name: str, value: str, choices: Sequence[str]) -> str:
+  if value not in choices:
+    raise ValueError(f"{name} must be one of {tuple(choices)}, got {value!r}")
+  return value
+
+
+def background_slot(config) -> Optional[int]:
+  """The background slot of a trained model: real slot 0, the one the locality constraint
+  reserves for the background (docs/method.md §1.4), or None for a model trained without it."""
+  return 0 if int(config.train.locality_steps) > 0 else None
 
 EDIT_KINDS = ("remove", "move")
 # Per-edit figures, each also computed for the unedited rendering as `<name>_baseline`.

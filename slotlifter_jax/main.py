@@ -59,6 +59,9 @@ flags.DEFINE_enum("removal", None, ["zero", "delete"], "edit: how a removed or m
 flags.DEFINE_enum("move_background", None, ["stay", "carry"], "edit: whether a moved slot "
                   "carries the background slot along the rays it covers (default: "
                   "edit_scores.MOVE_BACKGROUND; docs/editing.md §4).")
+flags.DEFINE_enum("uncovered", None, ["black", "background"], "edit: what an edit shows where "
+                  "it uncovers space the scene held opaque: the background slot's colour, or "
+                  "black (default: edit_scores.UNCOVERED; docs/editing.md §4).")
 flags.mark_flags_as_required(["config", "workdir"])
 FLAGS = flags.FLAGS
 
@@ -83,8 +86,8 @@ def main(argv):
   if not FLAGS.distributed and any(
       FLAGS[f].present for f in ("coordinator_address", "num_processes", "process_id")):
     sys.exit("error: --coordinator_address, --num_processes and --process_id need --distributed")
-  stray = [f for f in ("remove_slot", "move_slot", "by", "removal", "move_background")
-           if FLAGS[f].present]
+  stray = [f for f in ("remove_slot", "move_slot", "by", "removal", "move_background",
+                       "uncovered") if FLAGS[f].present]
   if stray and FLAGS.mode != "edit":
     sys.exit(f"error: --{stray[0]}: only with --mode=edit")
   # Before JAX starts (seconds on a CPU) and before the processes of a --distributed launch
@@ -139,7 +142,8 @@ def main(argv):
                           orbit_frames=FLAGS.orbit_frames,
                           **({"removal": FLAGS.removal} if FLAGS.removal else {}),
                           **({"move_background": FLAGS.move_background}
-                             if FLAGS.move_background else {})))
+                             if FLAGS.move_background else {}),
+                          **({"uncovered": FLAGS.uncovered} if FLAGS.uncovered else {})))
       except edit.EditFlagError as e:
         sys.exit(f"error: {e}")  # the message starts with the flag
     else:

@@ -80,6 +80,7 @@ def test_edit_scores_a_split_from_the_command_line(run_dir):
   assert report["settings"]["match_iou"] == edit_scores.MATCH_IOU
   assert report["settings"]["removal"] == edit_scores.REMOVAL
   assert report["settings"]["move_background"] == edit_scores.MOVE_BACKGROUND
+  assert report["settings"]["uncovered"] == edit_scores.UNCOVERED
   # Again without --overwrite: refused, the file kept.
   with open(path, "rb") as f:
     kept = f.read()
@@ -99,9 +100,9 @@ def test_edit_scores_a_split_from_the_command_line(run_dir):
   assert code != 0 and out.strip().splitlines()[-1] == "error: --remove_slot: only with --mode=edit"
   code, out = _main(f"--workdir={run_dir}", "--mode=eval", "--removal=delete")
   assert code != 0 and out.strip().splitlines()[-1] == "error: --removal: only with --mode=edit"
-  code, out = _main(f"--workdir={run_dir}", "--mode=eval", "--move_background=stay")
-  assert code != 0 and (out.strip().splitlines()[-1]
-                        == "error: --move_background: only with --mode=edit")
+  for flag, value in (("move_background", "stay"), ("uncovered", "black")):
+    code, out = _main(f"--workdir={run_dir}", "--mode=eval", f"--{flag}={value}")
+    assert code != 0 and out.strip().splitlines()[-1] == f"error: --{flag}: only with --mode=edit"
   assert _tree_digest(os.path.join(run_dir, "checkpoints")) == checkpoints
   with open(path, "rb") as f:
     assert f.read() == kept
@@ -133,8 +134,8 @@ def test_scoring_path_and_one_edit_pictures(run_dir, tmp_path):
   # A move that leaves the background where it is scores the same edits, and says so; the
   # smoke model is trained with the locality constraint, so carrying names slot 0.
   stay = edit_eval.score_split(config, run_dir, max_scenes=1, overwrite=True, progress=False,
-                               match_iou=0.0, move_background="stay")
-  assert stay["settings"]["move_background"] == "stay" and stay["settings"]["background_slot"] is None
+                               match_iou=0.0, move_background="stay", uncovered="black")
+  assert stay["settings"]["move_background"] == "stay" and stay["settings"]["uncovered"] == "black"
   assert report["settings"]["background_slot"] == (0 if config.train.locality_steps > 0 else None)
   assert [r.get("slot") for r in stay["edits"]] == [r.get("slot") for r in report["edits"]]
   # One edit of chosen scenes: pictures and an orbit, no metrics file touched.

@@ -183,11 +183,11 @@ def test_world_translations_turn_with_the_source_azimuth_frame():
   np.testing.assert_allclose(turned, scene.cam_to_world[0, :3, 3], atol=1e-5)
 
 
-def test_a_move_carries_the_slot_the_locality_constraint_reserves_for_the_background():
+def test_the_background_slot_is_the_one_the_locality_constraint_reserves():
   config = ml_collections.ConfigDict({"train": {"locality_steps": 50_000}})
-  assert edit_scores.background_slot(config, "carry") == 0
-  assert edit_scores.background_slot(config, "stay") is None
-  config.train.locality_steps = 0  # no slot was made the background: nothing to carry
-  assert edit_scores.background_slot(config, "carry") is None
+  assert edit_scores.background_slot(config) == 0
+  config.train.locality_steps = 0  # no slot was made the background: nothing to carry or fill
+  assert edit_scores.background_slot(config) is None
   with pytest.raises(ValueError, match="move_background"):
-    edit_scores.background_slot(config, "drag")
+    edit_scores.check_choice("move_background", "drag", edit_scores.MOVE_BACKGROUNDS)
+  assert edit_scores.check_choice("uncovered", "black", edit_scores.UNCOVERED_MODES) == "black"

@@ -371,6 +371,73 @@ def test_carried_shares_follow_the_moved_slots_opacity_alone():
   np.testing.assert_array_equal(np.asarray(moved)[:, 0, 1:], np.tile([1.0, 0.0, 0.0], (5, 1)))
 
 
+FLOOR_RGB = np.array([0.6, 0.5, 0.4])
+
+
+def _thin_floor_pass(centre, blob_rgb=(0.1, 0.2, 0.9)):
+  """An opaque one-colour floor (slot 0) that is thin under the blob (slot 1) centred at
+  `centre`, as a trained background slot is where the source view saw an object."""
+  def render_pass(origins, directions, z):
+    if z is None:
+      z = jnp.broadcast_to(jnp.linspace(0.5, 3.5, 128), origins.shape[:-1] + (128,))
+    x = origins[..., None, :] + z[..., None] * directions[..., None, :]
+    c = jnp.asarray(centre, jnp.float32)
+    r2 = (x[..., 0] - c[0]) ** 2 + (x[..., 1] - c[1]) ** 2
+    thin = 1.0 - 0.999 * jnp.exp(-(r2 / 0.6 ** 2) ** 4)
+    floor = 40.0 * jnp.exp(-(x[..., 2] / 0.05) ** 2) * thin
+    q = (x - c) / np.array([0.3, 0.3, 0.12])  # rounder than BLOB_AXES, so more rays hit it
+    blob = 60.0 * jnp.exp(-jnp.sum(q * q, -1))
+    sigma = jnp.stack([floor, blob], -1)
+    share = sigma / (sigma.sum(-1, keepdims=True) + 1e-9)
+    # One colour per sample, as the model's: the floor's up to z = 0.3 (beyond its tail), the
+    # blob's above.
+    colour = jnp.where(x[..., 2:] < 0.3, jnp.asarray(FLOOR_RGB, jnp.float32),
+                       jnp.asarray(blob_rgb, jnp.float32))
+    weights = jnp.concatenate([jnp.zeros_like(sigma[..., :1]), share], -1)
+    return edits.SlotField(slot_density=sigma, colour=colour, weights=weights), z
+  return render_pass
+
+
+def test_filling_what_a_removal_uncovers_gives_back_the_opaque_floor():
+  """Removing the blob leaves the thin floor under it, which renders dark (no background colour,
+  docs/method.md §1.5); filled with the background slot's own colour it renders the floor as the
+  scene drawn without the blob and with its whole floor does, on every ray the scene rendered
+  opaque (where the thin floor showed beside the blob the scene was dark before the edit too, and
+  the fill adds nothing)."""
+  # Raised off the floor, so that no floor sample has the blob's colour: what the fill gives
+  # back is then the floor's colour alone (a trained model's floor under an object carries some
+  # of the object's colour, docs/editing.md §5).
+  centre = BLOB_CENTRE + np.array([0.0, 0.0, 0.3])
+  origins, dirs = _rays(5, n=800, around=centre)
+  kw = dict(origins=jnp.asarray(origins), directions=jnp.asarray(dirs), far=3.5,
+            density_scale=25.0)
+  opaque = np.asarray(edits.edit_rays(_thin_floor_pass(centre), edits.Edit.identity(2),
+                                      **kw).opacity) > 0.999
+  truth = np.full((int(opaque.sum()), 3), FLOOR_RGB)  # the whole floor is opaque
+  hole = np.asarray(edits.edit_rays(_thin_floor_pass(centre), edits.Edit.remove([1], 2),
+                                    **kw).colour)[opaque]
+  dark = np.abs(hole - truth).max(-1) > 0.1
+  assert dark.sum() >= 20  # the rays that see the thin floor where the blob stood
+  filled = edits.edit_rays(_thin_floor_pass(centre), edits.Edit.remove([1], 2).filling(0), **kw)
+  np.testing.assert_allclose(np.asarray(filled.colour)[opaque], truth, atol=1e-4)
+  np.testing.assert_allclose(np.asarray(filled.segmentation)[opaque, 0], 1.0, atol=1e-5)
+
+
+def test_filling_changes_nothing_an_edit_does_not_uncover():
+  origins, dirs = _rays(6, n=200)
+  kw = dict(origins=jnp.asarray(origins), directions=jnp.asarray(dirs), far=3.5,
+            density_scale=25.0)
+  plain = edits.edit_rays(_thin_floor_pass(BLOB_CENTRE), edits.Edit.identity(2), **kw)
+  for edit in (edits.Edit.identity(2).filling(0),
+               edits.Edit.moving(1, 2, edits.RigidMove.make((0.0, 0.0, 0.0)),
+                                 background=0).filling(0)):
+    r = edits.edit_rays(_thin_floor_pass(BLOB_CENTRE), edit, **kw)
+    for field in ("colour", "depth", "opacity", "segmentation"):
+      np.testing.assert_allclose(getattr(r, field), getattr(plain, field), rtol=1e-5, atol=1e-6)
+  # Removing the background slot itself leaves nothing to fill with.
+  assert not edits.Edit.remove([0], 2).filling(0).fill
+
+
 # ---------------------------------------------------------------------------------------------
 # World space → the model's frame
 

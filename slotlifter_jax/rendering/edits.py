@@ -48,6 +48,9 @@ contributes.
 - Carry the background slot with a move (`carried_shares`): on the rays the moved slot covers,
   in proportion to its opacity there, the background slot comes from the moved pass too, so the
   air in front of the object stays as clear as the model rendered it where the object stood.
+- Fill what an edit uncovers (`fill_uncovered`): where an edit leaves a ray more transparent than
+  the unedited scene was, the background slot's own colour along the ray makes up the difference,
+  as the renderer has no background colour of its own.
 - Swap slot k between scenes: the second pass is another scene's (its slots and source views) at
   the same rays; slot k comes from it. With the background slot this puts one scene's objects on
   another's background.
@@ -189,10 +192,21 @@ class Edit:
   owner: jax.Array  # [K] int32: PLAIN, MOVED or REMOVED
   move: RigidMove
   deleted: jax.Array = 0  # [] int32: the slot the plain pass decodes without, when `delete`
-  background: jax.Array = 0  # [] int32: the background slot a move carries, when `carry`
+  background: jax.Array = 0  # [] int32: the background slot of `carry` and `fill`
   has_move: bool = flax.struct.field(pytree_node=False, default=False)
   delete: bool = flax.struct.field(pytree_node=False, default=False)
   carry: bool = flax.struct.field(pytree_node=False, default=False)
+  fill: bool = flax.struct.field(pytree_node=False, default=False)
+
+  def filling(self, background: Optional[int]) -> "Edit":
+    """This edit with what it uncovers filled by the `background` slot's colour (`fill_uncovered`);
+    unchanged when background is None or the edit removes that slot."""
+    if background is None or int(np.asarray(self.owner)[int(background)]) == REMOVED:
+      return self
+    if self.carry and int(self.background) != int(background):
+      raise ValueError(f"a move carries slot {int(self.background)} but fills with slot "
+                       f"{int(background)}: one background slot serves both")
+    return self.replace(background=jnp.asarray(background, jnp.int32), fill=True)
 
   @staticmethod
   def identity(num_slots: int) -> "Edit":
@@ -266,14 +280,16 @@ def _check_slots(slots: Sequence[int], num_slots: int) -> list[int]:
 
 
 def edit_rays(render_pass: Callable, edit: Edit, *, origins: jax.Array, directions: jax.Array,
-              far, density_scale: float,
-              moved_pass: Optional[Callable] = None) -> volume.RenderResult:
+              far, density_scale: float, moved_pass: Optional[Callable] = None,
+              unedited_pass: Optional[Callable] = None) -> volume.RenderResult:
   """An edited rendering of rays [..., 3] from a pass function.
 
   render_pass(origins, directions, z) → (SlotField, z): the field at the samples of the rays, at
   the depths z [..., S] when given and at the pass's own depths when z is None. The plain pass
   runs at its own depths; with `edit.has_move` a second pass, `moved_pass` (default
-  `render_pass`), runs along `moved_rays` at the same depths. Any field will do: the model's
+  `render_pass`), runs along `moved_rays` at the same depths. With `edit.fill` the unedited
+  scene's opacity comes from `unedited_pass` at the same depths (default: the plain pass's field,
+  right when the plain pass is the unedited one). Any field will do: the model's
   (`render_edit`), or a constructed one in the tests.
   """
   plain, z = render_pass(origins, directions, None)
@@ -286,7 +302,58 @@ def edit_rays(render_pass: Callable, edit: Edit, *, origins: jax.Array, directio
     if edit.carry:
       shares = carried_shares(edit.owner, edit.background, moved, z=z,
                               density_scale=density_scale)
-  return composite(fields, edit.owner, z=z, far=far, density_scale=density_scale, shares=shares)
+  edited = composite(fields, edit.owner, z=z, far=far, density_scale=density_scale,
+                     shares=shares)
+  if not edit.fill:
+    return edited
+  unedited = plain if unedited_pass is None else unedited_pass(origins, directions, z)[0]
+  opacity_before = composite([unedited], jnp.zeros_like(edit.owner), z=z, far=far,
+                             density_scale=density_scale).opacity  # [...]
+  only = jax.nn.one_hot(edit.background, edit.owner.shape[0], dtype=z.dtype)  # [K]
+  if shares is None:
+    owner = jnp.where(only > 0, edit.owner, REMOVED)
+    background = composite(fields, owner, z=z, far=far, density_scale=density_scale)
+  else:
+    background = composite(fields, None, z=z, far=far, density_scale=density_scale,
+                           shares=[sh * only for sh in shares])
+  return fill_uncovered(edited, background, opacity_before=opacity_before,
+                        background_slot=edit.background, far=far)
+
+
+# Below this opacity a ray's background slot has no colour to fill with.
+FILL_MIN_OPACITY = 1e-3
+
+
+def fill_uncovered(edited: volume.RenderResult, background: volume.RenderResult, *,
+                   opacity_before: jax.Array, background_slot, far) -> volume.RenderResult:
+  """What an edit uncovers, filled by the background slot (docs/editing.md §1, "Fill").
+
+  edited: the edit's rendering; background: the background slot alone in the same composite;
+  opacity_before [...]: the unedited scene's opacity O₀ on the same rays. The renderer has no
+  background colour (docs/method.md §1.5), so where an edit leaves a ray more transparent than
+  the scene was (O₀ > O), the ray turns towards black. The trained background slot renders the
+  floor opaque wherever the source view saw no object, and leaves the floor thin where one stood
+  (its lifted features are the object's). The fill f = max(0, O₀ − O) takes the background slot's
+  own colour along the ray, C_b / O_b, at its own depth D_b:
+    C̃ = C + f·C_b/O_b,  Õ = O + f,  d̃ = d + f·(D_b − far),
+    segmentation (M·O + f·e_b)/(O + f), the opacities standing in for the slot masses;
+  no fill where O_b < FILL_MIN_OPACITY. Nothing changes where the edit uncovers nothing (O ≥ O₀),
+  so an edit that changes nothing stays exact.
+  """
+  has = background.opacity >= FILL_MIN_OPACITY
+  safe = jnp.where(has, background.opacity, 1.0)
+  fill = jnp.where(has, jnp.maximum(0.0, opacity_before - edited.opacity), 0.0)  # [...]
+  colour = edited.colour + fill[..., None] * background.colour / safe[..., None]
+  depth_b = (background.depth - (1.0 - background.opacity) * far) / safe  # Σ w_b z / O_b
+  depth = edited.depth + fill * (depth_b - far)
+  opacity = edited.opacity + fill
+  segmentation = edited.segmentation
+  if segmentation is not None:
+    e_b = jax.nn.one_hot(background_slot, segmentation.shape[-1], dtype=segmentation.dtype)
+    mass = segmentation * edited.opacity[..., None] + fill[..., None] * e_b
+    segmentation = jnp.where((fill > 0)[..., None],
+                             mass / jnp.maximum(opacity, 1e-12)[..., None], segmentation)
+  return edited.replace(colour=colour, depth=depth, opacity=opacity, segmentation=segmentation)
 
 
 def carried_shares(owner, background, moved: SlotField, *, z: jax.Array,
@@ -365,7 +432,8 @@ def render_edit(model: model_lib.SlotLifter, params, encoded: model_lib.Encoded,
   full = model_pass(model, params, encoded, sources)
   plain = model_pass(model, params, encoded, sources, deleted=edit.deleted) if edit.delete else full
   return edit_rays(plain, edit, origins=origins, directions=directions, far=model.far,
-                   density_scale=model.density_scale, moved_pass=full)
+                   density_scale=model.density_scale, moved_pass=full,
+                   unedited_pass=full if edit.delete else None)
 
 
 def render_swap(model: model_lib.SlotLifter, params, scenes: Sequence[tuple], owner, *,
