@@ -209,9 +209,7 @@ def render_edit(config: ml_collections.ConfigDict, workdir: str, request: Reques
                                        "instead")
   renderer = EditRenderer(run.model, run.config)
   k = run.model.num_slots
-  background = edit_scores.background_slot(run.config)
-  carry = background if move_background == "carry" else None
-  fill = background if uncovered == "background" else None
+  carry, fill = edit_scores.background_roles(run.config, move_background, uncovered)
   out_dir = os.path.join(workdir, "edit", split)
   written = []
   for i in tqdm(indices, desc=f"edit {split}", unit="scene", disable=not progress):

@@ -177,8 +177,6 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
   `move_background` (edit_scores.MOVE_BACKGROUNDS) whether a move carries the background slot;
   `uncovered` (edit_scores.UNCOVERED_MODES) what fills the space an edit uncovers. The report
   records the values used."""
-  edit_scores.check_choice("move_background", move_background, edit_scores.MOVE_BACKGROUNDS)
-  edit_scores.check_choice("uncovered", uncovered, edit_scores.UNCOVERED_MODES)
   t_start = time.perf_counter()
   out_dir = os.path.join(workdir, "edit", split)
   metrics_path = os.path.join(out_dir, "edit_metrics.json")
@@ -191,9 +189,7 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
     raise EditFlagError("--mode=edit", "scores need the ground-truth masks and depth of the "
                                        "embedded set (data.has_masks)")
   scale = float(run.config.data.scene_scale)
-  background = edit_scores.background_slot(run.config)
-  carry = background if move_background == "carry" else None
-  fill = background if uncovered == "background" else None
+  carry, fill = edit_scores.background_roles(run.config, move_background, uncovered)
   renderer = EditRenderer(run.model, run.config)
   k = run.model.num_slots
   records = {kind: [] for kind in edit_scores.EDIT_KINDS}
@@ -241,7 +237,7 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
   report["settings"]["removal"] = removal
   report["settings"]["move_background"] = move_background
   report["settings"]["uncovered"] = uncovered
-  report["settings"]["background_slot"] = background
+  report["settings"]["background_slot"] = edit_scores.background_slot(run.config)
   for kind in edit_scores.EDIT_KINDS:
     report[kind] = edit_scores.summarize_kind(records[kind], skipped=skipped[kind],
                                               no_translation=no_translation,

@@ -66,6 +66,16 @@ def background_slot(config) -> Optional[int]:
   reserves for the background (docs/method.md §1.4), or None for a model trained without it."""
   return 0 if int(config.train.locality_steps) > 0 else None
 
+
+def background_roles(config, move_background: str, uncovered: str) -> tuple[Optional[int],
+                                                                            Optional[int]]:
+  """(the slot a move carries, the slot that fills what an edit uncovers), each None when off."""
+  check_choice("move_background", move_background, MOVE_BACKGROUNDS)
+  check_choice("uncovered", uncovered, UNCOVERED_MODES)
+  background = background_slot(config)
+  return (background if move_background == "carry" else None,
+          background if uncovered == "background" else None)
+
 EDIT_KINDS = ("remove", "move")
 # Per-edit figures, each also computed for the unedited rendering as `<name>_baseline`.
 FIGURES = ("psnr", "ssim", "psnr_changed", "psnr_changed_seen", "psnr_changed_unseen", "iou")
