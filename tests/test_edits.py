@@ -304,16 +304,23 @@ def test_a_moved_slot_owns_the_pixels_where_it_now_stands():
   np.testing.assert_array_equal(seg[clear].argmax(-1), ref[clear].argmax(-1))
 
 
+def _samples_around(origins, directions, z, centre, num_samples=128):
+  """(points [..., S, 3], depths z [..., S], squared horizontal distance of each point from
+  `centre`) for a constructed render_pass: z is the pass's own grid when None."""
+  if z is None:
+    z = jnp.broadcast_to(jnp.linspace(0.5, 3.5, num_samples), origins.shape[:-1] + (num_samples,))
+  x = origins[..., None, :] + z[..., None] * directions[..., None, :]
+  c = jnp.asarray(centre, jnp.float32)
+  return x, z, (x[..., 0] - c[0]) ** 2 + (x[..., 1] - c[1]) ** 2
+
+
 def _haze_pass(centre, haze=0.1, clearing=0.5, top=0.5):
   """The background slot as the model renders it: a floor at z = 0 under a haze through the slab
   0 ≤ z ≤ `top`, cleared in a vertical cylinder of radius `clearing` around the blob centred at
   `centre` (slot 1, whose W is a membership as in `_membership_pass`)."""
   def render_pass(origins, directions, z):
-    if z is None:
-      z = jnp.broadcast_to(jnp.linspace(0.5, 3.5, 128), origins.shape[:-1] + (128,))
-    x = origins[..., None, :] + z[..., None] * directions[..., None, :]
+    x, z, r2 = _samples_around(origins, directions, z, centre)
     c = jnp.asarray(centre, jnp.float32)
-    r2 = (x[..., 0] - c[0]) ** 2 + (x[..., 1] - c[1]) ** 2
     in_slab = (x[..., 2] >= 0.0) & (x[..., 2] <= top)
     background = 30.0 * jnp.exp(-(x[..., 2] / 0.05) ** 2) + haze * in_slab * (
         1.0 - jnp.exp(-(r2 / clearing ** 2) ** 4))
@@ -378,11 +385,8 @@ def _thin_floor_pass(centre, blob_rgb=(0.1, 0.2, 0.9)):
   """An opaque one-colour floor (slot 0) that is thin under the blob (slot 1) centred at
   `centre`, as a trained background slot is where the source view saw an object."""
   def render_pass(origins, directions, z):
-    if z is None:
-      z = jnp.broadcast_to(jnp.linspace(0.5, 3.5, 128), origins.shape[:-1] + (128,))
-    x = origins[..., None, :] + z[..., None] * directions[..., None, :]
+    x, z, r2 = _samples_around(origins, directions, z, centre)
     c = jnp.asarray(centre, jnp.float32)
-    r2 = (x[..., 0] - c[0]) ** 2 + (x[..., 1] - c[1]) ** 2
     thin = 1.0 - 0.999 * jnp.exp(-(r2 / 0.6 ** 2) ** 4)
     floor = 40.0 * jnp.exp(-(x[..., 2] / 0.05) ** 2) * thin
     q = (x - c) / np.array([0.3, 0.3, 0.12])  # rounder than BLOB_AXES, so more rays hit it
