@@ -7,7 +7,8 @@ Real data: --config.data.root=/path/to/uorf_data (holding room_chair_{train,test
 `:scene` samples inside the room's own slab (below) and trains, but does not split the embedded
 room set: no rung of the room ladder splits it (experiments/journal/2026-12.md, "Textured rooms:
 the room ladder" and the sections after it). The rungs are data options: data.plain_background,
-data.plain_objects, data.no_walls, data.room_objects (chairs, solid or boxes),
+data.plain_objects, data.no_walls, data.room_objects (chairs, solid, boxes, or clevr: the room
+holding CLEVR's objects),
 data.object_scale (≤ 1: smaller chairs), data.grey_floor, data.min_objects/max_objects;
 data.ray_sampling=floor_parallax draws rays towards the chairs on a textured floor.
 """

@@ -113,7 +113,9 @@ def base_config() -> ml_collections.ConfigDict:
   d.plain_objects = False  # and the chairs in one colour each, legs included
   d.no_walls = False  # and no walls: the floor runs to the horizon, as in the clevr family
   # and each chair as drawn ("chairs"), its legs filled in ("solid") or one box ("boxes"): the
-  # rungs between thin parts and compact objects (data/layout.py, ROOM_OBJECTS)
+  # rungs between thin parts and compact objects; or the room holding CLEVR's objects ("clevr",
+  # counted by min/max_objects as CLEVR's, 5–7 by default), the rung between the room's
+  # background and its objects (data/layout.py, ROOM_OBJECTS)
   d.room_objects = "chairs"
   d.grey_floor = False  # and every scene on the clevr family's grey floor: one floor for all scenes
   d.novel_ray_prob = 0.75  # probability that a scene's rays come from novel views only

@@ -337,3 +337,47 @@ def test_grey_floor_draws_the_same_rooms_on_the_clevr_floor():
   d = defaults.base_config().data
   d.family, d.room_objects, d.grey_floor = "room", "boxes", True
   assert os.path.basename(embedded.dataset_dir(d, seed=0)).endswith("-boxes-greyfloor")
+
+
+def test_a_room_holding_clevr_objects_keeps_its_room_and_renders_them_as_the_clevr_family_does():
+  import dataclasses
+  from slotlifter_jax.data import embedded, layout, writer
+  from slotlifter_jax import defaults
+  rng = lambda: generator.scene_rng(seed=5, family="room", split="train", index=2)
+  chairs = generator.sample_room_layout(rng())
+  spec = generator.sample_room_layout(rng(), room_objects="clevr")
+  # The room's own draws do not move: floor, walls, lights and ambient are the chairs' room's.
+  assert (spec.floor, spec.walls, spec.lights, spec.ambient) == (
+      chairs.floor, chairs.walls, chairs.lights, chairs.ambient)
+  # CLEVR's objects by CLEVR's tables, 5–7 of them unless the count options say otherwise.
+  assert 5 <= len(spec.objects) <= 7
+  assert [o.label for o in spec.objects] == list(range(1, len(spec.objects) + 1))
+  for o in spec.objects:
+    assert o.shape in generator.CLEVR_SHAPES and o.colour in generator.CLEVR_COLOURS
+    assert o.position[2] == pytest.approx(o.parts[0].half_size[2])  # resting on the floor
+  two = generator.sample_room_layout(rng(), room_objects="clevr", min_objects=2, max_objects=2)
+  assert len(two.objects) == 2 and two.floor == chairs.floor
+  # A pixel shows the same object as when the clevr family renders the same objects: the room's
+  # walls and textured floor hide none of them, and spheres and cylinders keep their shapes.
+  scene = generator.generate_scene(rng(), family="room", views=2, image_size=32,
+                                   room_objects="clevr")
+  as_clevr = dataclasses.replace(scene.spec, family="clevr", floor=layout.CLEVR_GROUND,
+                                 walls=None)
+  _, label, depth = writer.render_scene(as_clevr, scene.cam_to_world, image_size=32)
+  np.testing.assert_array_equal(scene.label, label)
+  objects = scene.label > 0
+  np.testing.assert_allclose(scene.depth[objects], depth[objects], rtol=1e-5)
+  assert {o.shape for o in scene.spec.objects} & {"sphere", "cylinder"}
+  # Up to CLEVR's seven objects; the mask's grey levels follow.
+  with pytest.raises(ValueError, match="max_objects") as info:
+    generator.check_object_options("room", max_objects=8, room_objects="clevr")
+  assert info.value.field == "max_objects"
+  with pytest.raises(ValueError, match="plain_objects") as info:
+    generator.check_object_options("room", plain_objects=True, room_objects="clevr")
+  assert info.value.field == "plain_objects"
+  header = writer._split_header(family="room", split="train", seed=0, views=2, image_size=32,
+                                num_scenes=1, supersample=1, room_objects="clevr")
+  assert header["mask"]["max_objects"] == 7 and header["objects"]["max_objects"] == 7
+  d = defaults.base_config().data
+  d.family, d.room_objects = "room", "clevr"
+  assert os.path.basename(embedded.dataset_dir(d, seed=0)).endswith("-o5-7-x1.0-clevr")

@@ -60,7 +60,7 @@ def dataset_dir(data_config, *, seed: int) -> str:
   generator.check_object_options(d.family, **objects)
   if not generator.is_default_objects(d.family, **objects):
     lo, hi = generator.object_count_range(d.family, objects["min_objects"],
-                                          objects["max_objects"])
+                                          objects["max_objects"], objects["room_objects"])
     name += f"-o{lo}-{hi}-x{objects['object_scale']!r}"
     if objects["plain_background"]:
       name += "-plainbg"

@@ -54,7 +54,8 @@ flags.DEFINE_bool("plain_objects", False, "room only: the same scenes with untex
 flags.DEFINE_bool("no_walls", False, "room only: the same scenes without walls.")
 flags.DEFINE_string("room_objects", "chairs", "room only: the same scenes with chairs, solid "
                     "chairs (legs filled in) or boxes (one box of a chair's footprint and "
-                    "height): one of chairs, solid, boxes.")
+                    "height), or the room holding CLEVR's objects (min/max_objects then count "
+                    "them, default 5-7): one of chairs, solid, boxes, clevr.")
 flags.DEFINE_bool("grey_floor", False, "room only: the same scenes on the clevr family's grey "
                   "floor.")
 

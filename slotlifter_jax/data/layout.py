@@ -54,7 +54,11 @@ MAX_OBJECTS = {"clevr": 7, "room": 4}
 # (seat, back and four legs), "solid" (the legs and the space between them one block under the
 # seat: no thin parts but the back), "boxes" (one box of the chair's footprint and full height).
 # Every form makes the same random draws, so a scene differs between forms only in its shapes.
-ROOM_OBJECTS = ("chairs", "solid", "boxes")
+# "clevr" keeps the room (floor, walls, lights, cameras) and stands CLEVR's objects in it, drawn
+# as the clevr family draws them (5–7 by default) from a stream jumped off the room's: the rung
+# that tells the room's background from its objects, starting from objects that split on a plain
+# floor.
+ROOM_OBJECTS = ("chairs", "solid", "boxes", "clevr")
 # An object must cover at least this many pixels of the source view at 128×128 (scaled by area).
 MIN_VISIBLE_PIXELS_128 = 20
 
@@ -274,9 +278,15 @@ def _default_lights(rng: np.random.Generator) -> tuple[Light, ...]:
   return key, fill, back
 
 
-def object_count_range(family: str, min_objects: int = 0, max_objects: int = 0) -> tuple[int, int]:
+def object_family(family: str, room_objects: str = "chairs") -> str:
+  """The family whose objects a scene draws: "clevr" for rooms holding CLEVR's objects."""
+  return "clevr" if family == "room" and room_objects == "clevr" else family
+
+
+def object_count_range(family: str, min_objects: int = 0, max_objects: int = 0,
+                       room_objects: str = "chairs") -> tuple[int, int]:
   """(lo, hi) objects per scene; 0 stands for the family's default bound (CLEVR 5–7, room 1–4)."""
-  default = CLEVR_NUM_OBJECTS if family == "clevr" else ROOM_NUM_CHAIRS
+  default = CLEVR_NUM_OBJECTS if object_family(family, room_objects) == "clevr" else ROOM_NUM_CHAIRS
   lo, hi = min_objects or default[0], max_objects or default[1]
   return lo, hi
 
@@ -297,16 +307,20 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
   set this generator can draw."""
   if family not in FAMILIES:
     raise ValueError(f"unknown family {family!r}; choose one of {FAMILIES}")
+  if room_objects not in ROOM_OBJECTS:
+    raise ObjectOptionError("room_objects", f"room_objects must be one of {ROOM_OBJECTS}, got "
+                                            f"{room_objects!r}")
+  objects = object_family(family, room_objects)
   for name, v in (("min_objects", min_objects), ("max_objects", max_objects)):
-    if v < 0 or v > MAX_OBJECTS[family]:
-      raise ObjectOptionError(name, f"{name} must lie in 0..{MAX_OBJECTS[family]} for the {family} "
-                                    f"family (0: the family's default), got {v}")
-  lo, hi = object_count_range(family, min_objects, max_objects)
+    if v < 0 or v > MAX_OBJECTS[objects]:
+      raise ObjectOptionError(name, f"{name} must lie in 0..{MAX_OBJECTS[objects]} for the "
+                                    f"{objects} family's objects (0: the family's default), got {v}")
+  lo, hi = object_count_range(family, min_objects, max_objects, room_objects)
   if lo > hi:
     raise ObjectOptionError("min_objects", f"min_objects ({lo}) must not exceed max_objects ({hi}) "
-                                           f"(0 stands for the {family} default "
-                                           f"{object_count_range(family)})")
-  if family == "room" and object_scale > 1.0:
+                                           f"(0 stands for the {objects} default "
+                                           f"{object_count_range(objects)})")
+  if objects == "room" and object_scale > 1.0:
     raise ObjectOptionError("object_scale", f"object_scale must lie in (0, 1] for the room family "
                                             f"(its tallest chair already reaches the top of the "
                                             f"room's scene slab), got {object_scale}")
@@ -315,9 +329,9 @@ def check_object_options(family: str, min_objects: int = 0, max_objects: int = 0
     if on and family != "room":
       raise ObjectOptionError(name, f"{name} applies to the room family only (the {family} "
                                     f"set is plain already)")
-  if room_objects not in ROOM_OBJECTS:
-    raise ObjectOptionError("room_objects", f"room_objects must be one of {ROOM_OBJECTS}, got "
-                                            f"{room_objects!r}")
+  if room_objects == "clevr" and plain_objects:
+    raise ObjectOptionError("plain_objects", "plain_objects has nothing to flatten in CLEVR's "
+                                             "one-colour objects (room_objects=clevr)")
   if room_objects != "chairs" and family != "room":
     raise ObjectOptionError("room_objects", f"room_objects applies to the room family only, got "
                                             f"{room_objects!r} for {family}")
@@ -335,6 +349,7 @@ def is_default_objects(family: str, min_objects: int = 0, max_objects: int = 0,
   untouched = not (plain_background or plain_objects or no_walls or grey_floor)
   return untouched and room_objects == "chairs" and object_scale == 1.0 and (
       object_count_range(family, min_objects, max_objects) == object_count_range(family))
+
 
 
 # The clevr family's floor, which every clevr scene shares; room scenes may borrow it (grey_floor).
@@ -466,9 +481,20 @@ def sample_room_layout(rng: np.random.Generator, *, min_objects: int = 0,
   and the length of their shadows, come near CLEVR's (0.6: 0.8–1.2 wide, 1.3–2.1 tall); the
   positions keep the default range. `grey_floor`: the same scenes on the clevr family's plain grey
   floor (CLEVR_GROUND) instead of the scene's own wood or tiles, the one floor every scene shares.
+  `room_objects="clevr"`: the room drawn as with chairs (its default count; every draw as before),
+  holding instead CLEVR's objects as `sample_clevr_layout` draws them with `min_objects`,
+  `max_objects` and `object_scale`, from a generator jumped off this one (so the room's own draws
+  do not move); the CLEVR layout's lights are not used, the room's are.
   """
   check_object_options("room", min_objects, max_objects, object_scale,
                        room_objects=room_objects, grey_floor=grey_floor)
+  if room_objects == "clevr":
+    clevr = sample_clevr_layout(np.random.Generator(rng.bit_generator.jumped()),
+                                min_objects=min_objects, max_objects=max_objects,
+                                object_scale=object_scale)
+    room = sample_room_layout(rng, plain_background=plain_background, no_walls=no_walls,
+                              grey_floor=grey_floor)
+    return dataclasses.replace(room, objects=clevr.objects)
   lo, hi = object_count_range("room", min_objects, max_objects)
   while True:
     n = int(rng.integers(lo, hi + 1))

@@ -85,13 +85,16 @@ class RenderOptions:
   quadrics: bool = True  # False: every primitive is a box, skip the quadric term
 
 
-def render_options(family: str, supersample: int = 2, walls: bool = True) -> RenderOptions:
-  """`walls`: False renders a room family scene without walls (its floor to the horizon)."""
+def render_options(family: str, supersample: int = 2, walls: bool = True,
+                   clevr_objects: bool = False) -> RenderOptions:
+  """`walls`: False renders a room family scene without walls (its floor to the horizon);
+  `clevr_objects`: a room holding CLEVR's objects, whose spheres and cylinders need the quadric
+  and whose metal the mirror bounce."""
   if family == "clevr":
     return RenderOptions(supersample=supersample, reflections=True, textures=False, walls=False,
                          quadrics=True)
-  return RenderOptions(supersample=supersample, reflections=False, textures=True, walls=walls,
-                       quadrics=False)
+  return RenderOptions(supersample=supersample, reflections=clevr_objects, textures=True,
+                       walls=walls, quadrics=clevr_objects)
 
 
 def _linear(rgb) -> np.ndarray:

@@ -36,7 +36,8 @@ from slotlifter_jax.data.layout import (BACKGROUND_LABEL, CAMERA_ELEVATION_DEG,
                                         check_object_options, is_default_objects,
                                         label_grey_levels, min_visible_pixels,
                                         normalised_intrinsics, num_source_views_for,
-                                        object_count_range, sample_cameras, sample_clevr_layout,
+                                        object_count_range, object_family, sample_cameras,
+                                        sample_clevr_layout,
                                         sample_room_layout, uorf_intrinsics)
 from slotlifter_jax.data.raycaster import render_options, scene_arrays
 from slotlifter_jax.data.shading import render_centre, render_views
@@ -132,7 +133,8 @@ def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size
                 room_objects: str = "chairs", grey_floor: bool = False):
   check_object_options(family, min_objects, max_objects, object_scale, plain_background,
                        plain_objects, no_walls, room_objects, grey_floor)
-  options = render_options(family, supersample, walls=not no_walls)
+  options = render_options(family, supersample, walls=not no_walls,
+                           clevr_objects=object_family(family, room_objects) == "clevr")
   k32 = jnp.asarray(uorf_intrinsics(image_size), jnp.float32)
   threshold = min_visible_pixels(image_size)
   for attempt in range(1, max_attempts + 1):
@@ -143,13 +145,15 @@ def _draw_scene(rng: np.random.Generator, *, family: str, views: int, image_size
       # Visibility is judged on the chairs in every form, and the form is drawn from a twin of
       # the chairs' random state: a box hides more of its neighbours and shows more of itself,
       # so judging each form on its own would redraw different scenes for different forms.
+      # CLEVR's objects are judged on themselves: they are not a form of the room's chairs.
       state = rng.bit_generator.state
       spec = sample_room_layout(rng, min_objects=min_objects, max_objects=max_objects,
                                 plain_background=plain_background,
                                 plain_objects=plain_objects, no_walls=no_walls,
-                                object_scale=object_scale, grey_floor=grey_floor)
+                                object_scale=object_scale, grey_floor=grey_floor,
+                                room_objects="clevr" if room_objects == "clevr" else "chairs")
       shaped = spec
-      if room_objects != "chairs":
+      if room_objects not in ("chairs", "clevr"):
         twin = np.random.Generator(type(rng.bit_generator)())
         twin.bit_generator.state = state
         shaped = sample_room_layout(twin, min_objects=min_objects, max_objects=max_objects,
@@ -176,7 +180,9 @@ def _render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
                      intrinsics=jnp.asarray(uorf_intrinsics(image_size), jnp.float32),
                      image_size=image_size,
                      options=render_options(spec.family, supersample,
-                                            walls=spec.walls is not None))
+                                            walls=spec.walls is not None,
+                                            clevr_objects=any(o.shape != "chair"
+                                                              for o in spec.objects)))
   rgb = np.asarray(out.rgb, np.float32)
   return (np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8),
           np.asarray(out.label, np.int32), np.asarray(out.depth, np.float32))
@@ -304,8 +310,10 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
                      else None},
       "depth": {"kind": "camera_z", "units": "world", "dtype": "float32",
                 "sample": "pixel centre", "no_hit": 0.0},
-      "mask": {"background_label": BACKGROUND_LABEL, "max_objects": MAX_OBJECTS[family],
-               "label_grey_levels": label_grey_levels(MAX_OBJECTS[family]),
+      "mask": {"background_label": BACKGROUND_LABEL,
+               "max_objects": MAX_OBJECTS[object_family(family, room_objects)],
+               "label_grey_levels": label_grey_levels(
+                   MAX_OBJECTS[object_family(family, room_objects)]),
                "encoding": "RGB PNG, label l drawn as (g, g, g) with g = label_grey_levels[l]",
                "sample": "pixel centre", "views": "all"},
   }
@@ -313,7 +321,7 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
   # (and _existing_split_matches tells the two apart by the key's presence).
   if not is_default_objects(family, min_objects, max_objects, object_scale, plain_background,
                             plain_objects, no_walls, room_objects, grey_floor):
-    lo, hi = object_count_range(family, min_objects, max_objects)
+    lo, hi = object_count_range(family, min_objects, max_objects, room_objects)
     header["objects"] = {"min_objects": lo, "max_objects": hi,
                          "object_scale": float(object_scale)}
     if plain_background:
