@@ -210,6 +210,9 @@ def base_config() -> ml_collections.ConfigDict:
   # validation scenes have masks, else mask-free (slotlifter_jax/restarts.py).
   t.restart_signal = "auto"
   t.restart_min_active_slots = 0.0
+  # and, mask-free, the mean per-pixel slot entropy / log K above which a spread slot split (a floor
+  # shared by several slots) restarts the attempt; 1: never
+  t.restart_max_pixel_entropy = 1.0
   t.log_every = 50
   t.eval_every = 5000
   t.eval_scenes = 8  # validation scenes used at each evaluation interval
@@ -409,6 +412,11 @@ def scene(c):
   c.train.restart_check_step = _share(n, 7, 25, multiple_of=every)
   c.train.restart_min_score = 0.55
   c.train.restart_min_active_slots = 3.0
+  # Fitted on the validation logs that record the mask-free statistics at step 14 000
+  # (experiments/journal/2026-12.md, "A mask-free check that reads the spread floor"): the runs
+  # the labelled check keeps read ≤ 0.24; those it restarts that have 3+ slots in use, their floor
+  # spread over them, ≥ 0.41; the gap's middle.
+  c.train.restart_max_pixel_entropy = 0.33
   c.train.log_every = 50
   c.train.eval_every = 2000
   c.train.eval_scenes = 20

@@ -6,9 +6,12 @@ Two triggers, both read from the validation that just ran:
   - "labelled": the selection score (`train.select_by`) below `train.restart_min_score`. On the
     embedded clevr set the worse of validation FG-ARI and NV-ARI at step 14 000 already separates
     the seeds that end split from those that do not (slotlifter_jax/tools/early_check.py);
-  - "mask_free": fewer than `train.restart_min_active_slots` slots in use on the validation views
+  - "mask_free": fewer than `train.restart_min_active_slots` slots in use on the validation views,
+    or a mean per-pixel slot entropy above `train.restart_max_pixel_entropy`
     (`validation.mask_free_statistics`), read from the model's outputs alone, for sets without
-    masks (a capture, the kitchens), which have no ARI to read;
+    masks (a capture, the kitchens), which have no ARI to read. Slots in use alone cannot tell
+    objects from a floor spread over several slots; the spread floor shares its pixels among
+    them, which the entropy reads (slotlifter_jax/mask_free.py);
   - "auto" (default): "labelled" when the validation scenes have masks, else "mask_free".
 Like `select_by`, this is model selection on the validation split, never the test split, and
 training still sees only the photometric loss.
@@ -30,6 +33,7 @@ from absl import logging
 
 from slotlifter_jax import checkpoints as ckpt_lib
 from slotlifter_jax import collapse
+from slotlifter_jax import mask_free
 from slotlifter_jax import multihost
 
 RESTARTED_DIR = "restarted"
@@ -58,12 +62,10 @@ def reason(train_config, step: int, val: dict, *, has_masks: bool = True) -> Opt
   if not check or step != check:
     return None
   if check_signal(train_config, has_masks=has_masks) == "mask_free":
-    need = float(train_config.get("restart_min_active_slots", 0.0))
-    used = float(val.get("mf_active_slots", np.nan))
-    if not used >= need:  # NaN (no novel view) restarts too: nothing says the run split
-      return (f"{used:.2f} slots in use on the validation views < "
-              f"train.restart_min_active_slots={need} at step {check} (mask-free check)")
-    return None
+    why = mask_free.shortfall(
+        val, min_active_slots=float(train_config.get("restart_min_active_slots", 0.0)),
+        max_pixel_entropy=float(train_config.get("restart_max_pixel_entropy", 1.0)))
+    return None if why is None else f"{why} at step {check} (mask-free check)"
   floor = float(train_config.get("restart_min_score", 0.0))
   if val["score"] < floor:
     return (f"selection score ({train_config.get('select_by', 'nv_ari')}) {val['score']:.3f} "

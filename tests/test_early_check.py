@@ -7,14 +7,17 @@ import sys
 TOOL = [sys.executable, "-m", "slotlifter_jax.tools.early_check"]
 
 
-def _write_run(folder, name, val_rows, slots=None):
-  """val_rows: (step, fg_ari, nv_ari); slots: {step: mf_active_slots} or None."""
+def _write_run(folder, name, val_rows, slots=None, entropy=None):
+  """val_rows: (step, fg_ari, nv_ari); slots, entropy: {step: mf_active_slots} and
+  {step: mf_pixel_entropy}, or None."""
   path = folder / f"{name}_val_metrics.jsonl"
   with open(path, "w") as f:
     for step, fg, nv in val_rows:
       row = dict(step=step, kind="val", fg_ari=fg, nv_ari=nv)
       if slots and step in slots:
         row["mf_active_slots"] = slots[step]
+      if entropy and step in entropy:
+        row["mf_pixel_entropy"] = entropy[step]
       f.write(json.dumps(row) + "\n")
   # A test evaluation beside it must change nothing: the tool never reads it.
   (folder / f"{name}_test_metrics.json").write_text("not json: opening this is a failure")
@@ -34,9 +37,11 @@ def _rows(stdout):
 def test_rule_outcomes_and_counts_by_hand(tmp_path):
   runs = [
       # kept (0.60 ≥ 0.55) and ends split: the worse of FG 0.70 and NV 0.60 is what counts
-      _write_run(tmp_path, "a", [(2, 0.1, 0.1), (4, 0.70, 0.60), (6, 0.9, 0.85)], {4: 4.0}),
-      # restarted (NV 0.50) and never split: the rule was right
-      _write_run(tmp_path, "b", [(4, 0.80, 0.50), (6, 0.9, 0.5)], {4: 4.0}),
+      _write_run(tmp_path, "a", [(2, 0.1, 0.1), (4, 0.70, 0.60), (6, 0.9, 0.85)], {4: 4.0},
+                 {4: 0.20}),
+      # restarted (NV 0.50) and never split: the rule was right; its four slots in use share
+      # the pixels (entropy 0.50), as a floor spread over slots does
+      _write_run(tmp_path, "b", [(4, 0.80, 0.50), (6, 0.9, 0.5)], {4: 4.0}, {4: 0.50}),
       # kept and ends below on FG (0.79 < 0.8): a miss of the rule
       _write_run(tmp_path, "c", [(4, 0.56, 0.70), (6, 0.79, 0.9)], {4: 2.0}),
       # restarted although it ends split; resumed, step 4 logged twice (the later row counts)
@@ -45,14 +50,24 @@ def test_rule_outcomes_and_counts_by_hand(tmp_path):
   result = _run("--step=4", "--min_score=0.55", "--min_active_slots=3", *runs)
   assert result.returncode == 0, result.stderr
   rows = _rows(result.stdout)
-  assert "| 0.600 | keep | 0.850 (6) | yes | 4.00 | keep |" in rows["a"]
-  assert "| 0.500 | restart | 0.500 (4) | no | 4.00 | keep |" in rows["b"]
-  assert "| 0.560 | keep | 0.790 (6) | no | 2.00 | restart |" in rows["c"]
-  assert "| 0.540 | restart | 0.800 (6) | yes | – | – |" in rows["d"]
+  assert "| 0.600 | keep | 0.850 (6) | yes | 4.00 | 0.20 | keep |" in rows["a"]
+  assert "| 0.500 | restart | 0.500 (4) | no | 4.00 | 0.50 | keep |" in rows["b"]
+  assert "| 0.560 | keep | 0.790 (6) | no | 2.00 | – | restart |" in rows["c"]
+  assert "| 0.540 | restart | 0.800 (6) | yes | – | – | – |" in rows["d"]
   lines = result.stdout.splitlines()
   assert lines[-2] == "4 runs: the rule keeps 1 that end below the target and restarts 1 that reach it"
   # a keeps with both, b and c are decided differently, d has no mask-free statistics
   assert lines[-1] == "3 runs log the mask-free statistics: the two rules decide alike on 1"
+  # The entropy cap restarts b (0.50 > 0.33) and keeps a (0.20); c, without the statistic, was
+  # restarted by its slots already.
+  result = _run("--step=4", "--min_score=0.55", "--min_active_slots=3",
+                "--max_pixel_entropy=0.33", *runs)
+  assert result.returncode == 0, result.stderr
+  rows = _rows(result.stdout)
+  assert rows["a"].endswith("| 4.00 | 0.20 | keep |")
+  assert rows["b"].endswith("| 4.00 | 0.50 | restart |")
+  assert result.stdout.splitlines()[-1] == (
+      "3 runs log the mask-free statistics: the two rules decide alike on 2")
 
 
 def test_sweep_ranks_rules_by_misjudged_runs(tmp_path):

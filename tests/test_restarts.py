@@ -180,6 +180,15 @@ def test_mask_free_check_on_a_constructed_metrics_log():
   assert "mask-free" in decide(log[1], has_masks=False)
   assert decide(dict(log[1], mf_active_slots=3.4), has_masks=False) is None
   assert decide(dict(log[1], mf_active_slots=float("nan")), has_masks=False) is not None
+  # The entropy cap: enough slots in use whose pixels are shared (a floor spread over them)
+  # restart; a missing entropy restarts too; no cap (1.0) reads the slots alone.
+  t.restart_max_pixel_entropy = 0.33
+  spread = dict(log[1], mf_active_slots=4.4, mf_pixel_entropy=0.68)
+  assert "entropy 0.68" in decide(spread, has_masks=False)
+  assert decide(dict(spread, mf_pixel_entropy=0.13), has_masks=False) is None
+  assert decide(dict(log[1], mf_active_slots=4.4), has_masks=False) is not None
+  t.restart_max_pixel_entropy = 1.0
+  assert decide(spread, has_masks=False) is None
   # With masks, "auto" is the labelled check: a score of 19 passes 0.55 whatever the slots.
   assert decide(log[1], has_masks=True) is None
   t.restart_signal = "mask_free"

@@ -5,7 +5,7 @@
     python -m slotlifter_jax.tools.early_check --sweep RUN ...
     python -m slotlifter_jax.tools.early_check --sweep @experiments/early_check_runs.txt
     python -m slotlifter_jax.tools.early_check --step=14000 --min_score=0.55 \
-        --min_active_slots=3 RUN ...
+        --min_active_slots=3 [--max_pixel_entropy=0.33] RUN ...
 
 RUN is a run folder (its metrics.jsonl) or a copied `NAME_val_metrics.jsonl`, as in
 experiments/results/. Everything here reads the validation split only, so that a rule fitted
@@ -16,8 +16,9 @@ it "ends split" when that reaches `--target`.
 For each run it prints the score at `--step`, what the labelled rule would do (keep the attempt or
 restart it from a new seed) and the outcome; the last line counts how often the rule keeps a run
 that ends below the target and restarts one that reaches it. With `--min_active_slots` it also
-applies the mask-free rule (slots in use on the validation views at `--step`,
-`validation.mask_free_statistics`) to the runs whose logs have it, and counts how often the two
+applies the mask-free rule (slots in use on the validation views at `--step`, and with
+`--max_pixel_entropy` their mean per-pixel slot entropy; `validation.mask_free_statistics`,
+`mask_free.shortfall`) to the runs whose logs have it, and counts how often the two
 rules decide alike. `--sweep` fits the labelled rule instead: every validated step and a grid of
 thresholds, ranked by the number of misjudged runs.
 """
@@ -29,6 +30,7 @@ import sys
 import numpy as np
 
 from slotlifter_jax import emergence  # numpy and absl only, no JAX
+from slotlifter_jax import mask_free
 
 SWEEP_THRESHOLDS = np.round(np.arange(0.30, 0.801, 0.05), 2)
 
@@ -47,6 +49,10 @@ def _path(run: str) -> str:
   return run
 
 
+def _maybe(value) -> str:
+  return "–" if value is None else f"{float(value):.2f}"
+
+
 def _score(row: dict) -> float:
   return min(float(row["fg_ari"]), float(row["nv_ari"]))
 
@@ -62,7 +68,7 @@ def load(run: str) -> dict[int, dict]:
 
 
 def check(run: str, rows: dict[int, dict], *, step: int, min_score: float, target: float,
-          min_active_slots=None) -> dict:
+          min_active_slots=None, max_pixel_entropy: float = 1.0) -> dict:
   if step not in rows:
     raise ValueError(f"{_path(run)}: no validation at step {step} (steps {min(rows)}–{max(rows)})")
   best_step = max(rows, key=lambda s: (_score(rows[s]), -s))
@@ -71,7 +77,10 @@ def check(run: str, rows: dict[int, dict], *, step: int, min_score: float, targe
              ends_split=_score(rows[best_step]) >= target, slots=None, keep_mask_free=None)
   if min_active_slots is not None and "mf_active_slots" in rows[step]:
     out["slots"] = float(rows[step]["mf_active_slots"])
-    out["keep_mask_free"] = out["slots"] >= min_active_slots
+    out["entropy"] = rows[step].get("mf_pixel_entropy")
+    out["keep_mask_free"] = mask_free.shortfall(
+        rows[step], min_active_slots=min_active_slots,
+        max_pixel_entropy=max_pixel_entropy) is None
   return out
 
 
@@ -101,6 +110,8 @@ def main(argv=None) -> int:
   parser.add_argument("--min_score", type=float)
   parser.add_argument("--target", type=float, default=0.8)
   parser.add_argument("--min_active_slots", type=float)
+  parser.add_argument("--max_pixel_entropy", type=float, default=1.0,
+                      help="with --min_active_slots: the mask-free rule's entropy cap (1: none)")
   parser.add_argument("--sweep", action="store_true")
   parser.add_argument("--top", type=int, default=10, help="--sweep: rules to print")
   args = parser.parse_args(argv)
@@ -113,7 +124,8 @@ def main(argv=None) -> int:
       table = sweep(all_rows, target=args.target)
     else:
       results = [check(r, rows, step=args.step, min_score=args.min_score, target=args.target,
-                       min_active_slots=args.min_active_slots)
+                       min_active_slots=args.min_active_slots,
+                       max_pixel_entropy=args.max_pixel_entropy)
                  for r, rows in zip(args.runs, all_rows)]
   except ValueError as e:
     print(f"error: {e}", file=sys.stderr)
@@ -127,23 +139,24 @@ def main(argv=None) -> int:
     for step, threshold, kept_failing, lost_passing in table[:args.top]:
       print(f"| {step} | {threshold:.2f} | {kept_failing} | {lost_passing} |")
     return 0
-  mask_free = args.min_active_slots is not None
+  with_mask_free = args.min_active_slots is not None
   print(f"| run | min(FG, NV) at {args.step} | rule | best validation (step) | ends split |"
-        + (" slots in use | mask-free rule |" if mask_free else ""))
-  print("|---|---|---|---|---|" + ("---|---|" if mask_free else ""))
+        + (" slots in use | pixel entropy | mask-free rule |" if with_mask_free else ""))
+  print("|---|---|---|---|---|" + ("---|---|---|" if with_mask_free else ""))
   for r in results:
     name = os.path.basename(r["run"].rstrip("/")).removesuffix("_val_metrics.jsonl")
     line = (f"| {name} | {r['early']:.3f} | {'keep' if r['keep'] else 'restart'} | "
             f"{r['best']:.3f} ({r['best_step']}) | {'yes' if r['ends_split'] else 'no'} |")
-    if mask_free:
-      line += (" – | – |" if r["slots"] is None else
-               f" {r['slots']:.2f} | {'keep' if r['keep_mask_free'] else 'restart'} |")
+    if with_mask_free:
+      line += (" – | – | – |" if r["slots"] is None else
+               f" {r['slots']:.2f} | {_maybe(r['entropy'])} |"
+               f" {'keep' if r['keep_mask_free'] else 'restart'} |")
     print(line)
   kept_failing = sum(r["keep"] and not r["ends_split"] for r in results)
   lost_passing = sum(not r["keep"] and r["ends_split"] for r in results)
   print(f"{len(results)} runs: the rule keeps {kept_failing} that end below the target and "
         f"restarts {lost_passing} that reach it")
-  if mask_free:
+  if with_mask_free:
     both = [r for r in results if r["keep_mask_free"] is not None]
     agree = sum(r["keep"] == r["keep_mask_free"] for r in both)
     print(f"{len(both)} runs log the mask-free statistics: the two rules decide alike on {agree}")
