@@ -8,9 +8,10 @@ Real data: --config.data.root=/path/to/uorf_data (holding room_chair_{train,test
 room set: no rung of the room ladder splits it (experiments/journal/2026-12.md, "Textured rooms:
 the room ladder" and the sections after it). The rungs are data options: data.plain_background,
 data.plain_objects, data.no_walls, data.room_objects (chairs, solid, boxes, or clevr: the room
-holding CLEVR's objects),
-data.object_scale (≤ 1: smaller chairs), data.grey_floor, data.min_objects/max_objects;
-data.ray_sampling=floor_parallax draws rays towards the chairs on a textured floor.
+holding CLEVR's objects), data.object_scale (≤ 1: smaller chairs), data.grey_floor,
+data.min_objects/max_objects. data.ray_sampling=floor_parallax draws rays towards the objects on
+a textured floor, where `:scene`'s contrast sampling spends them on the floor's texture (journal:
+"Textured rooms: CLEVR's objects in the room").
 """
 
 from slotlifter_jax import defaults
