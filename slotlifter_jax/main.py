@@ -108,6 +108,7 @@ def main(argv):
   if warning and jax.default_backend() == "cpu":
     logging.warning("%s", warning)
   from slotlifter_jax import checkpoints
+  from slotlifter_jax.data.layout import ObjectOptionError
   from slotlifter_jax.data.types import DataError
   if FLAGS.mode == "train":
     from slotlifter_jax import train
@@ -117,6 +118,8 @@ def main(argv):
       # Not a success: a script chaining `train && eval` must not go on.
       logging.warning("%s", e)
       sys.exit(128 + e.signum)
+    except ObjectOptionError as e:  # the embedded set's options, read when it is generated
+      sys.exit(f"error (data.{e.field}): {e}")
     except (train.ConfigError, checkpoints.CheckpointMismatchError, DataError,
             FileExistsError) as e:
       sys.exit(f"error ({type(e).__name__}): {e}")
@@ -152,6 +155,8 @@ def main(argv):
           scene_indices=pictures.parse_scene_indices(FLAGS.scenes),
           checkpoint=FLAGS.checkpoint, num_orbit_frames=FLAGS.orbit_frames, params=FLAGS.params):
         say(f"scene {files.scene_index} ({files.scene_name}): {files.panel}\n  {files.orbit}")
+  except ObjectOptionError as e:
+    sys.exit(f"error (data.{e.field}): {e}")
   except (evaluate.EvalSetupError, checkpoints.CheckpointMismatchError, DataError,
           FileExistsError, FileNotFoundError) as e:
     # Expected mistakes get their message, not a traceback.

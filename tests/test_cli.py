@@ -128,12 +128,15 @@ def test_train_interrupt_resume_eval_render_from_a_fresh_folder(tmp_path):
 
 # The bad inputs that only the data or the run folder reveals, after JAX has started.
 FOUND_AFTER_JAX_STARTS = ("data.root does not exist", "exists and is not a directory",
-                          "data.scene_stages:")
+                          "data.scene_stages:", "(data.max_objects)")
 
 
 @pytest.mark.parametrize("args, message", [
     (["--config=configs/nonexistent.py"], "--config=configs/nonexistent.py: cannot be loaded"),
     (["--config=configs/clevr.py:smoke", "--config.train.base_lrr=1"], 'did you mean "base_lr"'),
+    (["--config=configs/room_chair.py:smoke", "--config.data.room_objects=clevr",
+      "--config.data.max_objects=8"],
+     "error (data.max_objects): max_objects must lie in 0..7 for the clevr family's objects"),
     (["--config=configs/clevr.py:nonvariant"], "unknown variant 'nonvariant'"),
     (["--config=configs/clevr.py:fast"], "variant 'fast' was renamed 'scene'"),
     (["--config=configs/clevr.py:smoke", "--config.data.root=/nonexistent"],
