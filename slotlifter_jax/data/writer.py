@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 from PIL import Image
 
-from slotlifter_jax.data.layout import (BACKGROUND_LABEL, CAMERA_ELEVATION_DEG,
+from slotlifter_jax.data.layout import (BACKGROUND_LABEL, CAMERA_ELEVATION_DEG, CLEVR_SHAPES,
                                         CAMERA_ELEVATION_JITTER_DEG, CAMERA_RADIUS,
                                         CAMERA_RADIUS_JITTER, FAMILIES, GENERATOR_VERSION,
                                         LABEL_GREY_STEP, MAX_OBJECTS, ROOM_HALF_SIZE, SCENE_SCALE,
@@ -181,7 +181,7 @@ def _render_scene(spec: SceneSpec, cam_to_world: np.ndarray, *, image_size: int,
                      image_size=image_size,
                      options=render_options(spec.family, supersample,
                                             walls=spec.walls is not None,
-                                            clevr_objects=any(o.shape != "chair"
+                                            clevr_objects=any(o.shape in CLEVR_SHAPES
                                                               for o in spec.objects)))
   rgb = np.asarray(out.rgb, np.float32)
   return (np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8),
@@ -292,6 +292,7 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
                   plain_objects: bool = False, no_walls: bool = False,
                   room_objects: str = "chairs", grey_floor: bool = False) -> dict:
   k = uorf_intrinsics(image_size)
+  max_labels = MAX_OBJECTS[object_family(family, room_objects)]
   header = {
       "format": "slotlifter_jax.generated", "generator_version": GENERATOR_VERSION,
       "family": family, "subset": SUBSETS[family], "split": split, "seed": seed,
@@ -310,10 +311,8 @@ def _split_header(*, family: str, split: str, seed: int, views: int, image_size:
                      else None},
       "depth": {"kind": "camera_z", "units": "world", "dtype": "float32",
                 "sample": "pixel centre", "no_hit": 0.0},
-      "mask": {"background_label": BACKGROUND_LABEL,
-               "max_objects": MAX_OBJECTS[object_family(family, room_objects)],
-               "label_grey_levels": label_grey_levels(
-                   MAX_OBJECTS[object_family(family, room_objects)]),
+      "mask": {"background_label": BACKGROUND_LABEL, "max_objects": max_labels,
+               "label_grey_levels": label_grey_levels(max_labels),
                "encoding": "RGB PNG, label l drawn as (g, g, g) with g = label_grey_levels[l]",
                "sample": "pixel centre", "views": "all"},
   }
