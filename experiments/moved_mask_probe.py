@@ -9,15 +9,16 @@ slot's rendered mask (argmax of the segmentation) with the moved object's true m
 views, for
   - `stay`: the edit with the background slot left where it is (what the edit uncovers filled as
     edit_scores.UNCOVERED says, as in both edits),
-  - `carry`: the edit with the background slot carried along the rays the moved slot covers
-    (rendering/edits.py, carried_shares; docs/editing.md §1),
+  - `carry_<rule>`: the edit with the background slot carried along the rays the moved slot
+    covers, in the fraction each of rendering/edits.py's CARRY_RULES gives (carry_fraction;
+    docs/editing.md §1),
   - `moved_camera`: no edit, the unedited scene seen from the novel cameras moved by −t: the model's
     own rendering of the object and the floor around it from the relative pose the edit asks for,
     what compositing two passes can at best give the moved slot,
   - `unmoved`: no edit, the slot against the same object's mask where it stood (the slot's own
     quality in novel views),
-and the background slot's share of the segmentation on the moved object's true pixels in `stay`
-and `carry`. Reads the validation split only. Prints the means and writes every record with the
+and the background slot's share of the segmentation on the moved object's true pixels in each
+edit. Reads the validation split only. Prints the means and writes every record with the
 run's provenance.
 """
 
@@ -45,7 +46,8 @@ from slotlifter_jax.edit import EditRenderer  # noqa: E402
 from slotlifter_jax.rendering import edits  # noqa: E402
 
 SPLIT = "val"  # choices read validation only
-KINDS = ("stay", "carry", "moved_camera", "unmoved")
+EDITS = ("stay",) + tuple(f"carry_{rule}" for rule in edits.CARRY_RULES)
+KINDS = EDITS + ("moved_camera", "unmoved")
 
 
 def _iou(segmentation: np.ndarray, slot: int, truth: np.ndarray) -> float:
@@ -82,9 +84,11 @@ def probe(config, workdir: str, num_scenes: int) -> dict:
                                         scene_scale=scale).astype(np.float32)
       record = {"scene": index, "label": obj.label, "slot": slot, "match_iou": match,
                 "translation": [float(t[0]), float(t[1]), 0.0]}
-      for kind, carried in (("stay", None), ("carry", background)):
+      for kind in EDITS:
+        rule = kind.removeprefix("carry_")
         edit = edits.move_edit(slot, k, edits.RigidMove.make(t_model), edit_scores.REMOVAL,
-                               carried).filling(fill)
+                               None if kind == "stay" else background,
+                               **({} if kind == "stay" else {"carry_rule": rule})).filling(fill)
         _, _, seg = renderer.render(run.params, u.encoded, u.sources, edit,
                                     cam_to_world=scene.cam_to_world[novel], **cams)
         record[kind] = _iou(seg, slot, moved_mask)
@@ -99,7 +103,7 @@ def probe(config, workdir: str, num_scenes: int) -> dict:
       print(json.dumps({key: (round(v, 3) if isinstance(v, float) else v)
                         for key, v in record.items() if key != "translation"}), flush=True)
   means = {kind: float(np.mean([r[kind] for r in records])) for kind in KINDS}
-  for kind in ("stay", "carry"):
+  for kind in EDITS:
     key = f"background_share_{kind}"
     means[key] = float(np.mean([r[key] for r in records]))
   return {"split": SPLIT, "num_scenes": len(run.scenes), "num_moves": len(records),
@@ -121,9 +125,8 @@ def main():
   print(f"{report['num_moves']} moves on {report['num_scenes']} validation scenes, step "
         f"{report['checkpoint']['step']}: mean IoU " + ", ".join(
             f"{kind} {report['means'][kind]:.3f}" for kind in KINDS)
-        + f"; background share on the moved object's pixels: stay "
-          f"{report['means']['background_share_stay']:.3f}, carry "
-          f"{report['means']['background_share_carry']:.3f}")
+        + "; background share on the moved object's pixels: " + ", ".join(
+            f"{kind} {report['means'][f'background_share_{kind}']:.3f}" for kind in EDITS))
   if args.out:
     tmp = args.out + ".tmp"
     with open(tmp, "w") as f:

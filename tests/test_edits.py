@@ -358,30 +358,67 @@ def test_a_moved_slot_carries_the_background_that_cleared_the_haze_in_front_of_i
                                 ref[clear].argmax(-1))
 
 
-def test_carried_shares_follow_the_moved_slots_opacity_alone():
-  """NumPy: β = 1 − Π(1 − α) over the moved slots' density; the background slot's share is
-  1 − β from the plain pass and β from the moved pass, every other slot keeps its one pass."""
+def _numpy_segmentation(sigma, weights, z, scale=25.0):
+  """docs/method.md §1.5 in NumPy float64: the segmentation over the real slots of a field with
+  slot densities sigma [..., S, K] and point-slot weights [..., S, K+1]."""
+  delta = np.concatenate([z[..., 1:] - z[..., :-1], np.zeros_like(z[..., :1])], axis=-1)
+  alpha = 1.0 - np.exp(-sigma.sum(-1) * delta * scale)
+  trans = np.cumprod(np.concatenate([np.ones_like(alpha[..., :1]), 1.0 - alpha[..., :-1]], -1),
+                     axis=-1)
+  mass = np.einsum("...s,...sk->...k", alpha * trans, weights[..., 1:])
+  return mass / mass.sum(-1, keepdims=True)
+
+
+def test_carry_fraction_of_each_rule_against_numpy():
+  """β per ray from the moved pass: the moved slot's opacity alone, its share of the moved pass's
+  segmentation, and 1 where that share is the largest (two slots move here, so it is their sum
+  against the largest other slot)."""
   rng = np.random.default_rng(4)
-  k, s = 4, 12
-  sigma = rng.uniform(0.0, 0.3, size=(5, s, k))
-  z = np.sort(rng.uniform(0.5, 3.0, size=(5, s)), axis=-1)
-  owner = np.array([edits.PLAIN, edits.MOVED, edits.PLAIN, edits.REMOVED])
+  k, s, n = 4, 12, 64
+  sigma = rng.uniform(0.0, 0.3, size=(n, s, k)) * rng.uniform(0.0, 1.0, size=(n, 1, k)) ** 3
+  logits = rng.normal(size=(n, s, k + 1)) * 2.0
+  weights = np.exp(logits) / np.exp(logits).sum(-1, keepdims=True)
+  z = np.sort(rng.uniform(0.5, 3.0, size=(n, s)), axis=-1)
+  owner = np.array([edits.PLAIN, edits.MOVED, edits.MOVED, edits.REMOVED])
   field = edits.SlotField(slot_density=jnp.asarray(sigma, jnp.float32),
-                          colour=jnp.zeros((5, s, 3)), weights=jnp.zeros((5, s, k + 1)))
-  plain, moved = edits.carried_shares(jnp.asarray(owner), 0, field, z=jnp.asarray(z, jnp.float32),
-                                      density_scale=25.0)
-  delta = np.concatenate([np.diff(z, axis=-1), np.zeros((5, 1))], -1)
-  beta = 1.0 - np.exp(-25.0 * np.sum(sigma[..., 1] * delta, -1))  # only slot 1 moves
-  np.testing.assert_allclose(np.asarray(moved)[:, 0, 0], beta, rtol=1e-5, atol=1e-6)
-  np.testing.assert_allclose(np.asarray(plain)[:, 0, 0], 1.0 - beta, rtol=1e-5, atol=1e-6)
-  np.testing.assert_array_equal(np.asarray(plain)[:, 0, 1:], np.tile([0.0, 1.0, 0.0], (5, 1)))
-  np.testing.assert_array_equal(np.asarray(moved)[:, 0, 1:], np.tile([1.0, 0.0, 0.0], (5, 1)))
+                          colour=jnp.zeros((n, s, 3)), weights=jnp.asarray(weights, jnp.float32))
+  beta = {rule: np.asarray(edits.carry_fraction(jnp.asarray(owner), field,
+                                                z=jnp.asarray(z, jnp.float32),
+                                                density_scale=25.0, rule=rule))
+          for rule in edits.CARRY_RULES}
+  delta = np.concatenate([np.diff(z, axis=-1), np.zeros((n, 1))], -1)
+  np.testing.assert_allclose(beta["opacity"],
+                             1.0 - np.exp(-25.0 * np.sum(sigma[..., 1:3].sum(-1) * delta, -1)),
+                             rtol=1e-5, atol=1e-6)
+  seg = _numpy_segmentation(sigma, weights, z)
+  share = seg[:, 1:3].sum(-1)
+  np.testing.assert_allclose(beta["share"], share, rtol=1e-4, atol=1e-5)
+  others = np.maximum(seg[:, 0], seg[:, 3])
+  wins = share > others
+  assert 10 <= wins.sum() <= n - 10  # both outcomes are tested
+  decided = np.abs(share - others) > 1e-4
+  np.testing.assert_array_equal(beta["winner"][decided], wins[decided].astype(np.float32))
+  with pytest.raises(ValueError, match="carry rule"):
+    edits.Edit.moving(1, k, edits.RigidMove.make((0.0, 0.0, 0.0)), background=0,
+                      carry_rule="nearest")
+
+
+def test_carried_shares_split_the_background_slot_by_beta():
+  """The background slot's share is 1 − β from the plain pass and β from the moved pass; every
+  other slot keeps its one pass."""
+  beta = jnp.asarray([0.0, 0.3, 1.0])
+  owner = jnp.asarray([edits.PLAIN, edits.MOVED, edits.PLAIN, edits.REMOVED])
+  plain, moved = edits.carried_shares(owner, 0, beta)
+  np.testing.assert_allclose(np.asarray(plain)[:, 0, 0], [1.0, 0.7, 0.0], atol=1e-7)
+  np.testing.assert_allclose(np.asarray(moved)[:, 0, 0], [0.0, 0.3, 1.0], atol=1e-7)
+  np.testing.assert_array_equal(np.asarray(plain)[:, 0, 1:], np.tile([0.0, 1.0, 0.0], (3, 1)))
+  np.testing.assert_array_equal(np.asarray(moved)[:, 0, 1:], np.tile([1.0, 0.0, 0.0], (3, 1)))
 
 
 FLOOR_RGB = np.array([0.6, 0.5, 0.4])
 
 
-def _thin_floor_pass(centre, blob_rgb=(0.1, 0.2, 0.9)):
+def _thin_floor_pass(centre, blob_rgb=(0.1, 0.2, 0.9), blob_density=60.0):
   """An opaque one-colour floor (slot 0) that is thin under the blob (slot 1) centred at
   `centre`, as a trained background slot is where the source view saw an object."""
   def render_pass(origins, directions, z):
@@ -390,7 +427,7 @@ def _thin_floor_pass(centre, blob_rgb=(0.1, 0.2, 0.9)):
     thin = 1.0 - 0.999 * jnp.exp(-(r2 / 0.6 ** 2) ** 4)
     floor = 40.0 * jnp.exp(-(x[..., 2] / 0.05) ** 2) * thin
     q = (x - c) / np.array([0.3, 0.3, 0.12])  # rounder than BLOB_AXES, so more rays hit it
-    blob = 60.0 * jnp.exp(-jnp.sum(q * q, -1))
+    blob = blob_density * jnp.exp(-jnp.sum(q * q, -1))
     sigma = jnp.stack([floor, blob], -1)
     share = sigma / (sigma.sum(-1, keepdims=True) + 1e-9)
     # One colour per sample, as the model's: the floor's up to z = 0.3 (beyond its tail), the
@@ -440,6 +477,32 @@ def test_filling_changes_nothing_an_edit_does_not_uncover():
       np.testing.assert_allclose(getattr(r, field), getattr(plain, field), rtol=1e-5, atol=1e-6)
   # Removing the background slot itself leaves nothing to fill with.
   assert not edits.Edit.remove([0], 2).filling(0).fill
+
+
+def test_a_carried_translucent_object_is_not_filled_over():
+  """A translucent blob over the floor that is thin under it, moved with the background carried
+  and what the edit uncovers filled: on the rays the move carries, the unedited scene is the one
+  it carries (the blob where it stood), so nothing there counts as uncovered and the blob keeps
+  its pixels, as in the scene drawn with the blob at its new place. Measured against the opaque
+  floor at the new place instead, the blob's own translucency reads as uncovered and the fill
+  gives most of its pixels to the floor."""
+  centre = BLOB_CENTRE
+  t = np.array([-0.9, 0.8, 0.0])
+  faint = dict(blob_density=0.1)
+  origins, dirs = _rays(8, n=600, around=centre + t)
+  kw = dict(origins=jnp.asarray(origins), directions=jnp.asarray(dirs), far=3.5,
+            density_scale=25.0)
+  truth = edits.edit_rays(_thin_floor_pass(centre + t, **faint), edits.Edit.identity(2), **kw)
+  ref = np.asarray(truth.segmentation)
+  on_blob = ref[:, 1] > ref[:, 0] + 0.2
+  assert on_blob.sum() >= 20 and np.median(np.asarray(truth.opacity)[on_blob]) < 0.9
+  edit = edits.Edit.moving(1, 2, edits.RigidMove.make(t), background=0).filling(0)
+  moved = edits.edit_rays(_thin_floor_pass(centre, **faint), edit, **kw)
+  np.testing.assert_array_equal(np.asarray(moved.segmentation)[on_blob].argmax(-1), 1)
+  # Against the plain pass's opaque floor at the new place, the blob's translucency would read as
+  # uncovered on most of its rays.
+  plain = edits.edit_rays(_thin_floor_pass(centre, **faint), edits.Edit.identity(2), **kw)
+  assert np.median(np.asarray(plain.opacity)[on_blob] - np.asarray(moved.opacity)[on_blob]) > 0.2
 
 
 # ---------------------------------------------------------------------------------------------

@@ -79,6 +79,13 @@ from slotlifter_jax.rendering import volume
 REMOVED = -1
 PLAIN, MOVED = 0, 1  # pass indices in `render_edit`
 
+# How a move decides, ray by ray, how much of the background slot it carries (`carry_fraction`):
+# "winner" (the default: 1 where the moved slots win the moved pass's segmentation, else 0),
+# "share" (their share of that segmentation) or "opacity" (their opacity alone). Compared on the
+# validation split by experiments/moved_mask_probe.py (docs/editing.md §7).
+CARRY_RULES = ("winner", "share", "opacity")
+CARRY_RULE = "winner"
+
 
 @flax.struct.dataclass
 class SlotField:
@@ -197,6 +204,7 @@ class Edit:
   delete: bool = flax.struct.field(pytree_node=False, default=False)
   carry: bool = flax.struct.field(pytree_node=False, default=False)
   fill: bool = flax.struct.field(pytree_node=False, default=False)
+  carry_rule: str = flax.struct.field(pytree_node=False, default=CARRY_RULE)
 
   def filling(self, background: Optional[int]) -> "Edit":
     """This edit with what it uncovers filled by the `background` slot's colour (`fill_uncovered`);
@@ -232,18 +240,21 @@ class Edit:
 
   @staticmethod
   def moving(slot: int, num_slots: int, move: RigidMove, *, delete: bool = False,
-             background: Optional[int] = None) -> "Edit":
+             background: Optional[int] = None, carry_rule: str = CARRY_RULE) -> "Edit":
     """Move `slot`; with `delete` the other slots are decoded without it, as `delete_slot`; with
     a `background` slot other than `slot`, the move carries it along the rays the moved slot
-    covers (`carried_shares`)."""
+    covers (`carried_shares`), in the fraction `carry_rule` gives (`carry_fraction`)."""
     owner = np.zeros(num_slots, np.int32)
+    if carry_rule not in CARRY_RULES:
+      raise ValueError(f"carry rule must be one of {CARRY_RULES}, got {carry_rule!r}")
     owner[_check_slots([slot], num_slots)] = MOVED
     carry = background is not None and int(background) != int(slot)
     if carry:
       _check_slots([background], num_slots)
     return Edit(owner=jnp.asarray(owner), move=move, has_move=True,
                 deleted=jnp.asarray(slot, jnp.int32), delete=delete,
-                background=jnp.asarray(background if carry else 0, jnp.int32), carry=carry)
+                background=jnp.asarray(background if carry else 0, jnp.int32), carry=carry,
+                carry_rule=carry_rule)
 
 
 # How a removal takes a slot away (docs/editing.md §4): "zero" its density and weights in the
@@ -259,11 +270,12 @@ def removal_edit(slot: int, num_slots: int, removal: str) -> Edit:
 
 
 def move_edit(slot: int, num_slots: int, move: RigidMove, removal: str,
-              background: Optional[int] = None) -> Edit:
+              background: Optional[int] = None, carry_rule: str = CARRY_RULE) -> Edit:
   """Move one slot, taking it from where it stood the `removal` way (REMOVALS) and carrying the
   `background` slot along the rays it covers, if one is given (`carried_shares`)."""
   _check_removal(removal)
-  return Edit.moving(slot, num_slots, move, delete=removal == "delete", background=background)
+  return Edit.moving(slot, num_slots, move, delete=removal == "delete", background=background,
+                     carry_rule=carry_rule)
 
 
 def _check_removal(removal: str) -> None:
@@ -294,21 +306,31 @@ def edit_rays(render_pass: Callable, edit: Edit, *, origins: jax.Array, directio
   """
   plain, z = render_pass(origins, directions, None)
   fields = [plain]
-  shares = None
+  shares = beta = None
   if edit.has_move:
     o, d = moved_rays(origins, directions, edit.move)
     moved, _ = (moved_pass or render_pass)(o, d, z)
     fields.append(moved)
     if edit.carry:
-      shares = carried_shares(edit.owner, edit.background, moved, z=z,
-                              density_scale=density_scale)
+      beta = carry_fraction(edit.owner, moved, z=z, density_scale=density_scale,
+                            rule=edit.carry_rule)
+      shares = carried_shares(edit.owner, edit.background, beta)
   edited = composite(fields, edit.owner, z=z, far=far, density_scale=density_scale,
                      shares=shares)
   if not edit.fill:
     return edited
   unedited = plain if unedited_pass is None else unedited_pass(origins, directions, z)[0]
-  opacity_before = composite([unedited], jnp.zeros_like(edit.owner), z=z, far=far,
+  zeros = jnp.zeros_like(edit.owner)
+  opacity_before = composite([unedited], zeros, z=z, far=far,
                              density_scale=density_scale).opacity  # [...]
+  if beta is not None:
+    # What a move uncovers on the rays it carries is measured against the scene it carries there:
+    # the moved pass, the unedited scene where the object stood. Against the plain pass's opaque
+    # floor at the new place the object's own translucency (opacity ~0.8) would read as uncovered
+    # and the fill would hand its pixels to the background slot.
+    opacity_carried = composite([moved], zeros, z=z, far=far,
+                                density_scale=density_scale).opacity  # [...]
+    opacity_before = (1.0 - beta) * opacity_before + beta * opacity_carried
   only = jax.nn.one_hot(edit.background, edit.owner.shape[0], dtype=z.dtype)  # [K]
   if shares is None:
     owner = jnp.where(only > 0, edit.owner, REMOVED)
@@ -356,28 +378,51 @@ def fill_uncovered(edited: volume.RenderResult, background: volume.RenderResult,
   return edited.replace(colour=colour, depth=depth, opacity=opacity, segmentation=segmentation)
 
 
-def carried_shares(owner, background, moved: SlotField, *, z: jax.Array,
-                   density_scale: float) -> list[jax.Array]:
+def carry_fraction(owner, moved: SlotField, *, z: jax.Array, density_scale: float,
+                   rule: str = CARRY_RULE) -> jax.Array:
+  """β [...]: the fraction of the background slot a move carries along each ray (`carried_shares`),
+  read from the moved pass (the unedited scene at the rays moved by T⁻¹), which sees the moved
+  slots (owner MOVED) where they stood:
+    "winner":  1 where the moved slots together hold the largest part of the moved pass's
+               segmentation (the model's own mask of the object, as `--mode=render` draws it), else 0;
+    "share":   their part of that segmentation;
+    "opacity": 1 − Π(1 − α) of their density alone (α as `volume`).
+  Every rule gives 0 on the rays that do not see the moved slots where they stood.
+  """
+  if rule not in CARRY_RULES:
+    raise ValueError(f"carry rule must be one of {CARRY_RULES}, got {rule!r}")
+  owner = jnp.asarray(owner, jnp.int32)  # [K]
+  moved_mask = (owner == MOVED).astype(moved.slot_density.dtype)  # [K]
+  if rule == "opacity":
+    density = jnp.sum(moved.slot_density * moved_mask, axis=-1)  # [..., S]
+    alpha = volume.alpha_from_density(density=density, z=z, density_scale=density_scale)
+    return 1.0 - jnp.prod(1.0 - alpha, axis=-1)
+  segmentation = composite([moved], jnp.zeros_like(owner), z=z, far=1.0,
+                           density_scale=density_scale).segmentation  # [..., K]
+  share = jnp.sum(segmentation * moved_mask, axis=-1)  # [...]
+  if rule == "share":
+    return share
+  others = jnp.max(jnp.where(moved_mask > 0, -jnp.inf, segmentation), axis=-1)
+  return (share > others).astype(share.dtype)
+
+
+def carried_shares(owner, background, beta: jax.Array) -> list[jax.Array]:
   """The per-sample shares (`composite`) of a move that carries the background slot: [PLAIN,
   MOVED], each [..., 1, K].
 
   The moved slots (owner MOVED) and every other slot keep their pass; the background slot, owned
-  by PLAIN, comes from the moved pass in proportion β, the opacity the moved slots have alone
-  along the ray (α from their density at the depths z, as `volume`), and from the plain pass in
-  proportion 1 − β. Why: the background slot renders the floor as a haze through the scene slab
-  and clears it in front of an object only where the model saw one; at the moved object's new
-  place the plain pass has the haze, which hides the object and takes its pixels
+  by PLAIN, comes from the moved pass in proportion β [...] (`carry_fraction`) and from the plain
+  pass in proportion 1 − β. Why: the background slot renders the floor as a haze through the
+  scene slab and clears it in front of an object only where the model saw one; at the moved
+  object's new place the plain pass has the haze, which hides the object and takes its pixels
   (docs/editing.md §7). On the rays the moved object covers, the background comes with it from
   where it stood: the air in front of it clear, the floor under it its own. With a move by zero
   both passes are one and the shares change nothing.
   """
   owner = jnp.asarray(owner, jnp.int32)  # [K]
-  moved_mask = (owner == MOVED).astype(moved.slot_density.dtype)  # [K]
-  density = jnp.sum(moved.slot_density * moved_mask, axis=-1)  # [..., S]
-  alpha = volume.alpha_from_density(density=density, z=z, density_scale=density_scale)
-  beta = 1.0 - jnp.prod(1.0 - alpha, axis=-1)  # [...] the moved slots' opacity alone
-  is_background = jax.nn.one_hot(background, owner.shape[0], dtype=density.dtype)  # [K]
-  plain_mask = (owner == PLAIN).astype(density.dtype)
+  moved_mask = (owner == MOVED).astype(beta.dtype)  # [K]
+  is_background = jax.nn.one_hot(background, owner.shape[0], dtype=beta.dtype)  # [K]
+  plain_mask = (owner == PLAIN).astype(beta.dtype)
   carried = beta[..., None, None] * is_background  # [..., 1, K]
   return [plain_mask - carried, moved_mask + carried]
 
