@@ -376,7 +376,10 @@ def edit_clevr() -> list[str]:
     commit = d["provenance"]["git_commit"]
     commit = commit[:7] + ("-dirty" if commit.endswith("-dirty") else "")
     settings = d["settings"]
-    how = f"{settings.get('move_background', 'stay')} / {settings.get('uncovered', 'black')}"
+    how = settings.get("move_background", "stay")
+    if how == "carry":  # the rule β was read by (rendering/edits.py, carry_fraction)
+      how += f" ({settings.get('carry_rule', 'opacity')})"
+    how += f" / {settings.get('uncovered', 'black')}"
     for kind in ("remove", "move"):
       s = d[kind]
       iou = (f"{_edit_cell(s, 'iou', '{:.3f}')} / {_edit_cell(s, 'iou_baseline', '{:.3f}')}"
@@ -395,7 +398,9 @@ def edit_clevr() -> list[str]:
                  "slot is decoded out of the slot set). ± : the standard error over edits. PSNR "
                  "in dB on the novel views against the edited ground truth; 'unedited' renders "
                  "the scene as it was (the baseline an edit must beat). Move: background "
-                 "`carry` takes the background slot along the rays the moved slot covers, "
+                 "`carry` takes the background slot along the rays the moved slot covers (by the rule "
+                 "in brackets: `winner` where the moved slot wins its own pass's segmentation, "
+                 "`opacity` in proportion to its opacity alone), "
                  "`stay` leaves it; uncovered `background` fills what an edit uncovers with the "
                  "background slot's colour, `black` leaves it to the renderer's empty ray (the "
                  "defaults, `carry / background`, chosen on the validation split). Commit: the "

@@ -236,6 +236,8 @@ def score_split(config: ml_collections.ConfigDict, workdir: str, *, split: str =
   report["settings"]["match_iou"] = float(match_iou)
   report["settings"]["removal"] = removal
   report["settings"]["move_background"] = move_background
+  if carry is not None:
+    report["settings"]["carry_rule"] = edits.CARRY_RULE
   report["settings"]["uncovered"] = uncovered
   report["settings"]["background_slot"] = edit_scores.background_slot(run.config)
   for kind in edit_scores.EDIT_KINDS:

@@ -45,7 +45,7 @@ MOVE_SEED = 8_062_024
 REMOVAL = "delete"
 
 # What a move does with the background slot (rendering/edits.py, carried_shares): "carry" it
-# along the rays the moved slot covers, or let it "stay" where it is; and what an edit shows
+# along the rays the moved slot covers (by edits.CARRY_RULE), or let it "stay" where it is; and what an edit shows
 # where it uncovers space the scene held opaque (rendering/edits.py, fill_uncovered): the
 # "background" slot's colour, or "black", the renderer's empty ray. Chosen on the validation
 # split (docs/editing.md §4).
