@@ -10,8 +10,10 @@ the room ladder" and the sections after it). The rungs are data options: data.pl
 data.plain_objects, data.no_walls, data.room_objects (chairs, solid, boxes, or clevr: the room
 holding CLEVR's objects), data.object_scale (≤ 1: smaller chairs), data.grey_floor,
 data.min_objects/max_objects. data.ray_sampling=floor_parallax draws rays towards the objects on
-a textured floor, where `:scene`'s contrast sampling spends them on the floor's texture (journal:
-"Textured rooms: CLEVR's objects in the room").
+a textured floor, where `:scene`'s contrast sampling spends them on the floor's texture: it lets
+CLEVR's objects part from the textured room, not the room's chairs, which stay unreconstructed
+either way (journal: "Textured rooms: CLEVR's objects in the room" and "… the room's chairs under
+the floor-parallax sampler"), so `:scene` keeps the contrast sampling.
 """
 
 from slotlifter_jax import defaults
