@@ -312,8 +312,12 @@ def edit_rays(render_pass: Callable, edit: Edit, *, origins: jax.Array, directio
     moved, _ = (moved_pass or render_pass)(o, d, z)
     fields.append(moved)
     if edit.carry:
+      # The moved pass rendered unedited: what `carry_fraction` reads, and the scene the fill
+      # measures against on the carried rays.
+      carried_scene = composite([moved], jnp.zeros_like(edit.owner), z=z, far=far,
+                                density_scale=density_scale)
       beta = carry_fraction(edit.owner, moved, z=z, density_scale=density_scale,
-                            rule=edit.carry_rule)
+                            rule=edit.carry_rule, moved_render=carried_scene)
       shares = carried_shares(edit.owner, edit.background, beta)
   edited = composite(fields, edit.owner, z=z, far=far, density_scale=density_scale,
                      shares=shares)
@@ -328,9 +332,7 @@ def edit_rays(render_pass: Callable, edit: Edit, *, origins: jax.Array, directio
     # the moved pass, the unedited scene where the object stood. Against the plain pass's opaque
     # floor at the new place the object's own translucency (opacity ~0.8) would read as uncovered
     # and the fill would hand its pixels to the background slot.
-    opacity_carried = composite([moved], zeros, z=z, far=far,
-                                density_scale=density_scale).opacity  # [...]
-    opacity_before = (1.0 - beta) * opacity_before + beta * opacity_carried
+    opacity_before = (1.0 - beta) * opacity_before + beta * carried_scene.opacity
   only = jax.nn.one_hot(edit.background, edit.owner.shape[0], dtype=z.dtype)  # [K]
   if shares is None:
     owner = jnp.where(only > 0, edit.owner, REMOVED)
@@ -379,7 +381,8 @@ def fill_uncovered(edited: volume.RenderResult, background: volume.RenderResult,
 
 
 def carry_fraction(owner, moved: SlotField, *, z: jax.Array, density_scale: float,
-                   rule: str = CARRY_RULE) -> jax.Array:
+                   rule: str = CARRY_RULE,
+                   moved_render: Optional[volume.RenderResult] = None) -> jax.Array:
   """β [...]: the fraction of the background slot a move carries along each ray (`carried_shares`),
   read from the moved pass (the unedited scene at the rays moved by T⁻¹), which sees the moved
   slots (owner MOVED) where they stood:
@@ -388,6 +391,8 @@ def carry_fraction(owner, moved: SlotField, *, z: jax.Array, density_scale: floa
     "share":   their part of that segmentation;
     "opacity": 1 − Π(1 − α) of their density alone (α as `volume`).
   Every rule gives 0 on the rays that do not see the moved slots where they stood.
+  moved_render: the moved pass's own rendering (`composite([moved], all PLAIN)`), when the caller
+  has it already (`edit_rays` uses it for the fill too); rendered here when None.
   """
   if rule not in CARRY_RULES:
     raise ValueError(f"carry rule must be one of {CARRY_RULES}, got {rule!r}")
@@ -397,8 +402,10 @@ def carry_fraction(owner, moved: SlotField, *, z: jax.Array, density_scale: floa
     density = jnp.sum(moved.slot_density * moved_mask, axis=-1)  # [..., S]
     alpha = volume.alpha_from_density(density=density, z=z, density_scale=density_scale)
     return 1.0 - jnp.prod(1.0 - alpha, axis=-1)
-  segmentation = composite([moved], jnp.zeros_like(owner), z=z, far=1.0,
-                           density_scale=density_scale).segmentation  # [..., K]
+  if moved_render is None:  # the moved pass rendered unedited; far does not reach the segmentation
+    moved_render = composite([moved], jnp.zeros_like(owner), z=z, far=1.0,
+                             density_scale=density_scale)
+  segmentation = moved_render.segmentation  # [..., K]
   share = jnp.sum(segmentation * moved_mask, axis=-1)  # [...]
   if rule == "share":
     return share
