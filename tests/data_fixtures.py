@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 
 import numpy as np
@@ -206,3 +207,20 @@ def write_scannet_scene(root, name, *, frames=(0, 10, 20, 100), size=(6, 8), see
     with open(os.path.join(scene, "test.txt"), "w") as fh:
       fh.write("\n".join(str(f) for f in targets) + "\n")
   return truth
+
+
+def write_eval(folder, rows, *, differs=None, step=100, parameters=None):
+  """An evaluation folder as --mode=eval writes it: per_scene.csv rows, metrics.json."""
+  os.makedirs(folder)
+  names = sorted({k for r in rows.values() for k in r})
+  with open(os.path.join(folder, "per_scene.csv"), "w") as f:
+    f.write(",".join(["index", "scene", "num_views"] + names) + "\n")
+    for i, (scene, r) in enumerate(rows.items()):
+      f.write(",".join([str(i), scene, "4"] + [repr(float(r.get(k, math.nan))) for k in names])
+              + "\n")
+  with open(os.path.join(folder, "metrics.json"), "w") as f:
+    meta = {"checkpoint": {"step": step}, "differs_from_training": differs or {}}
+    if parameters:  # written since --params; older evaluations lack it
+      meta["parameters"] = parameters
+    json.dump(meta, f)
+  return str(folder)

@@ -9,37 +9,21 @@ import sys
 
 import pytest
 
+import data_fixtures as fx
 from slotlifter_jax.tools import paired_eval
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TOOL = [sys.executable, "-m", "slotlifter_jax.tools.paired_eval"]
 
 
-def _write_eval(folder, rows, *, differs=None, step=100, parameters=None):
-  """An evaluation folder as --mode=eval writes it: per_scene.csv rows, metrics.json."""
-  os.makedirs(folder)
-  names = sorted({k for r in rows.values() for k in r})
-  with open(os.path.join(folder, "per_scene.csv"), "w") as f:
-    f.write(",".join(["index", "scene", "num_views"] + names) + "\n")
-    for i, (scene, r) in enumerate(rows.items()):
-      f.write(",".join([str(i), scene, "4"] + [repr(float(r.get(k, math.nan))) for k in names])
-              + "\n")
-  with open(os.path.join(folder, "metrics.json"), "w") as f:
-    meta = {"checkpoint": {"step": step}, "differs_from_training": differs or {}}
-    if parameters:  # written since --params; older evaluations lack it
-      meta["parameters"] = parameters
-    json.dump(meta, f)
-  return str(folder)
-
-
 def test_paired_difference_by_hand(tmp_path):
   # fg_ari: differences +0.1, +0.3, −0.1 and a NaN scene (no foreground) left out:
   # mean 0.1, sample std 0.2, s.e. 0.2/√3.
-  base = _write_eval(tmp_path / "a", {"s0": {"fg_ari": 0.5, "psnr_novel": 20.0},
+  base = fx.write_eval(tmp_path / "a", {"s0": {"fg_ari": 0.5, "psnr_novel": 20.0},
                                       "s1": {"fg_ari": 0.4, "psnr_novel": 22.0},
                                       "s2": {"fg_ari": 0.9, "psnr_novel": 24.0},
                                       "s3": {"fg_ari": math.nan, "psnr_novel": 26.0}})
-  other = _write_eval(tmp_path / "b", {"s3": {"fg_ari": 0.7, "psnr_novel": 26.0},  # other order
+  other = fx.write_eval(tmp_path / "b", {"s3": {"fg_ari": 0.7, "psnr_novel": 26.0},  # other order
                                        "s0": {"fg_ari": 0.6, "psnr_novel": 20.0},
                                        "s1": {"fg_ari": 0.7, "psnr_novel": 21.0},
                                        "s2": {"fg_ari": 0.8, "psnr_novel": 25.0}},
@@ -60,8 +44,8 @@ def test_paired_difference_by_hand(tmp_path):
 
 
 def test_refuses_different_scenes_missing_files_and_metrics(tmp_path):
-  a = _write_eval(tmp_path / "a", {"s0": {"fg_ari": 0.5}, "s1": {"fg_ari": 0.4}})
-  b = _write_eval(tmp_path / "b", {"s0": {"fg_ari": 0.5}, "s2": {"fg_ari": 0.4}})
+  a = fx.write_eval(tmp_path / "a", {"s0": {"fg_ari": 0.5}, "s1": {"fg_ari": 0.4}})
+  b = fx.write_eval(tmp_path / "b", {"s0": {"fg_ari": 0.5}, "s2": {"fg_ari": 0.4}})
   with pytest.raises(paired_eval.PairedEvalError, match="different scenes"):
     paired_eval.compare([a, b], ["fg_ari"])
   with pytest.raises(paired_eval.PairedEvalError, match="nv_ari"):
@@ -74,8 +58,8 @@ def test_refuses_different_scenes_missing_files_and_metrics(tmp_path):
 
 
 def test_command_line_prints_writes_and_keeps_an_existing_file(tmp_path):
-  a = _write_eval(tmp_path / "a", {"s0": {"fg_ari": 0.2}, "s1": {"fg_ari": 0.4}})
-  b = _write_eval(tmp_path / "b", {"s0": {"fg_ari": 0.5}, "s1": {"fg_ari": 0.5}},
+  a = fx.write_eval(tmp_path / "a", {"s0": {"fg_ari": 0.2}, "s1": {"fg_ari": 0.4}})
+  b = fx.write_eval(tmp_path / "b", {"s0": {"fg_ari": 0.5}, "s1": {"fg_ari": 0.5}},
                   parameters="average")
   out = tmp_path / "cmp.json"
   cmd = [*TOOL, a, b, "--metrics=fg_ari", f"--out={out}"]
