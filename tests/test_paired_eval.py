@@ -20,14 +20,14 @@ def test_paired_difference_by_hand(tmp_path):
   # fg_ari: differences +0.1, +0.3, −0.1 and a NaN scene (no foreground) left out:
   # mean 0.1, sample std 0.2, s.e. 0.2/√3.
   base = fx.write_eval(tmp_path / "a", {"s0": {"fg_ari": 0.5, "psnr_novel": 20.0},
-                                      "s1": {"fg_ari": 0.4, "psnr_novel": 22.0},
-                                      "s2": {"fg_ari": 0.9, "psnr_novel": 24.0},
-                                      "s3": {"fg_ari": math.nan, "psnr_novel": 26.0}})
+                                         "s1": {"fg_ari": 0.4, "psnr_novel": 22.0},
+                                         "s2": {"fg_ari": 0.9, "psnr_novel": 24.0},
+                                         "s3": {"fg_ari": math.nan, "psnr_novel": 26.0}})
   other = fx.write_eval(tmp_path / "b", {"s3": {"fg_ari": 0.7, "psnr_novel": 26.0},  # other order
-                                       "s0": {"fg_ari": 0.6, "psnr_novel": 20.0},
-                                       "s1": {"fg_ari": 0.7, "psnr_novel": 21.0},
-                                       "s2": {"fg_ari": 0.8, "psnr_novel": 25.0}},
-                      differs={"model.slot_iters": [3, 5]})
+                                          "s0": {"fg_ari": 0.6, "psnr_novel": 20.0},
+                                          "s1": {"fg_ari": 0.7, "psnr_novel": 21.0},
+                                          "s2": {"fg_ari": 0.8, "psnr_novel": 25.0}},
+                         differs={"model.slot_iters": [3, 5]})
   result = paired_eval.compare([base, other], ["fg_ari", "psnr_novel"])
   rows = result["others"][0]["rows"]
   fg = rows["fg_ari"]

@@ -20,10 +20,10 @@ import math
 import sys
 
 from slotlifter_jax.tools import group_stats
+from slotlifter_jax.tools import metrics_table
 from slotlifter_jax.tools import paired_eval
 
 DEFAULT_METRICS = ("fg_ari", "nv_ari", "active_slots", "psnr_novel")
-DIGITS = {"psnr_novel": 2, "psnr_source": 2, "active_slots": 2}
 
 
 class ByCountError(ValueError):
@@ -58,7 +58,7 @@ def format_table(groups: dict, metrics) -> str:
     cells = []
     for m in metrics:
       s = g[m]
-      digits = DIGITS.get(m, 3)
+      digits = metrics_table.DIGITS.get(m, 3)
       if s.n == 0:
         cells.append("–")
       elif s.n == 1:
