@@ -5,8 +5,8 @@ behind a config's `data.scene_z_range` (the slab `fast` samples rays in).
 
 Back-projects every pixel of the split's views with its stored depth and prints percentiles of the
 height z of floor, wall and object points, the distance along the ray to the first surface
-(against render.near and render.far), and the horizontal radius of object points (against the
-locality box). Validation scenes by default: a bound chosen here reads no test scene.
+(against render.near and render.far), the horizontal radius of object points and the share of them
+outside the locality box. Validation scenes by default: a bound chosen here reads no test scene.
 """
 
 from __future__ import annotations
@@ -78,6 +78,11 @@ def main(argv=None) -> int:
   print(f"object radius: {np.round(np.percentile(np.linalg.norm(objects[:, :2], axis=1), PERCENTILES), 3)}; "
         f"largest |x|, |y|: {np.round(np.abs(objects[:, :2]).max(axis=0), 3)} "
         f"(model.locality_box {config.model.locality_box})")
+  # The box acts on every coordinate of the points the model sees (the config's frame), where
+  # only the first slots may take a point outside it while the locality steps last.
+  outside = np.any(np.abs(objects) > config.model.locality_box, axis=1)
+  print(f"object pixels outside the locality box (any |coordinate| > "
+        f"{config.model.locality_box}, frame {config.data.frame}): {100 * outside.mean():.2f} %")
   print(f"data.scene_z_range of this config: {tuple(config.data.scene_z_range)}")
   return 0
 
