@@ -29,7 +29,6 @@ the number of objects in the source view. Only the validation split is read.
 from __future__ import annotations
 
 import argparse
-import ast
 import json
 import os
 import sys
@@ -117,16 +116,8 @@ def main():
                       help="a dotted config override, e.g. data.object_scale=0.6 (repeatable)")
   parser.add_argument("--out", default="")
   args = parser.parse_args()
-  overrides = {}
-  for item in args.set:
-    key, sep, value = item.partition("=")
-    if not sep:
-      parser.error(f"--set={item!r}: expected KEY=VALUE")
-    try:
-      overrides[key] = ast.literal_eval(value)
-    except (ValueError, SyntaxError):
-      overrides[key] = value  # a bare word: a string such as boxes
   try:
+    overrides = study_common.parse_set_overrides(args.set)
     config = study_common.apply_overrides(study_common.load_config(args.config), overrides)
   except study_common.StudyError as e:
     parser.error(str(e))

@@ -15,7 +15,6 @@ ones that look like the grey floor) and coloured ones.
 from __future__ import annotations
 
 import argparse
-import ast
 import os
 import sys
 
@@ -56,16 +55,8 @@ def main():
   parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                       help="a dotted config override, e.g. data.object_scale=0.6 (repeatable)")
   args = parser.parse_args()
-  overrides = {}
-  for item in args.set:
-    key, sep, value = item.partition("=")
-    if not sep:
-      parser.error(f"--set={item!r}: expected KEY=VALUE")
-    try:
-      overrides[key] = ast.literal_eval(value)
-    except (ValueError, SyntaxError):
-      overrides[key] = value  # a bare word: a string such as boxes
   try:
+    overrides = study_common.parse_set_overrides(args.set)
     config = study_common.apply_overrides(study_common.load_config(args.config), overrides)
   except study_common.StudyError as e:
     parser.error(str(e))

@@ -44,6 +44,7 @@ Nothing here imports JAX at module level, so a script can re-execute itself with
 
 from __future__ import annotations
 
+import ast
 import copy
 import csv
 import dataclasses
@@ -125,6 +126,21 @@ def load_config(spec: str):
     return module.get_config(variant)
   except ValueError as e:
     raise StudyError(f"{spec}: {e}") from e
+
+
+def parse_set_overrides(items) -> dict:
+  """{dotted key: value} from `--set=KEY=VALUE` strings: a Python literal where the value parses
+  as one, else the bare word (a string such as boxes). StudyError names an item without '='."""
+  overrides = {}
+  for item in items:
+    key, sep, value = item.partition("=")
+    if not sep:
+      raise StudyError(f"--set={item!r}: expected KEY=VALUE")
+    try:
+      overrides[key] = ast.literal_eval(value)
+    except (ValueError, SyntaxError):
+      overrides[key] = value
+  return overrides
 
 
 def apply_overrides(config, overrides: Mapping[str, Any]):
