@@ -43,6 +43,8 @@ def check_config(config) -> None:
   try:
     check_supersample(config.render)  # validation renders with it
     check_output_stride(config.model.get("encoder_output_stride", 4))
+    check_input_pool(config.model.get("encoder_input_pool", 1),
+                     image_size=config.data.get("image_size"))
     check_stages(train.get("ray_stages", ()), field="train.ray_stages", upper=2**31 - 1,
                  multiple_of=int(train.ray_chunks))
     curriculum_stages(config.data.get("curriculum", ()))
@@ -190,6 +192,16 @@ def check_output_stride(stride) -> None:
   if stride not in OUTPUT_STRIDES:
     raise ValueError(f"model.encoder_output_stride is {stride!r}; it must be one of "
                      f"{OUTPUT_STRIDES} (4 is the paper's)")
+
+
+def check_input_pool(pool, *, image_size=None) -> None:
+  """ValueError naming `model.encoder_input_pool` unless it is an integer ≥ 1 that divides the
+  image size (when `image_size` is a known int)."""
+  if isinstance(pool, bool) or not isinstance(pool, int) or pool < 1:
+    raise ValueError(f"model.encoder_input_pool is {pool!r}; it must be an integer ≥ 1")
+  if isinstance(image_size, int) and not isinstance(image_size, bool) and image_size % pool:
+    raise ValueError(f"model.encoder_input_pool is {pool}; data.image_size {image_size} must "
+                     f"divide by it")
 
 
 def check_stages(stages, *, field: str, upper: int, multiple_of: int = 1

@@ -22,6 +22,9 @@ def base_config() -> ml_collections.ConfigDict:
   # Feature map h×w = H/4×W/4 (the paper's); 2 adds a decoder stage to H/2×W/2 (encoder.py), an
   # option of this repository.
   m.encoder_output_stride = 4
+  # p > 1: the encoder sees the source views box-filtered to H/p×W/p; lifting and the targets keep
+  # full size (model.pooled_encoder_input), an option of this repository.
+  m.encoder_input_pool = 1
   m.num_slots = 8  # K (the empty slot is extra)
   m.slot_dim = 256
   m.slot_iters = 3

@@ -70,6 +70,7 @@ import jax
 import jax.numpy as jnp
 import ml_collections
 
+from slotlifter_jax import config_checks
 from slotlifter_jax import decoder as decoder_lib
 from slotlifter_jax import geometry
 from slotlifter_jax import lifting
@@ -137,6 +138,28 @@ def encoder_input(*, images: jax.Array, cam_to_world: jax.Array,
                           rays.directions.astype(images.dtype)], axis=-1)
 
 
+def pooled_encoder_input(x: jax.Array, pool: int) -> jax.Array:
+  """The encoder input of a view box-filtered by `pool`: [..., H, W, 9] → [..., H/p, W/p, 9].
+
+  RGB and camera origin are the mean over each p×p block; the ray direction is the block's mean
+  unit direction renormalised, the ray through the block's centre up to O((p·pixel/focal)²). The
+  feature map of a pooled view keeps `lifting`'s align-corners mapping to full-size pixels, the
+  same approximation a stride-s map already makes. Why: the encoder's cost grows with the pixel
+  count, and a finer view may help the targets and the lifted colours more than slot attention.
+  """
+  config_checks.check_input_pool(pool)
+  if pool == 1:
+    return x
+  height, width = x.shape[-3], x.shape[-2]
+  if height % pool or width % pool:
+    raise ValueError(f"model.encoder_input_pool is {pool}; the source views' {height}×{width} "
+                     f"pixels must divide by it")
+  blocks = x.reshape(x.shape[:-3] + (height // pool, pool, width // pool, pool, x.shape[-1]))
+  mean = blocks.mean(axis=(-4, -2))  # [..., H/p, W/p, 9]
+  directions = mean[..., 6:9] / jnp.linalg.norm(mean[..., 6:9], axis=-1, keepdims=True)
+  return jnp.concatenate([mean[..., :6], directions], axis=-1)
+
+
 def point_embedding_input(*, points: jax.Array, directions: jax.Array,
                           num_freqs: int) -> jax.Array:
   """[PE(xyz), PE(unit ray direction)] per sample (docs/method.md §1.3): points [B, R, S, 3],
@@ -180,6 +203,9 @@ class SlotLifter(nn.Module):
   feature_dim: int = 64
   encoder_stem_width: int = 64
   encoder_output_stride: int = 4  # 4: the paper's quarter-size feature map; 2: encoder.py
+  # p: the encoder (and so slot attention) sees the source views box-filtered to H/p × W/p, while
+  # lifting gathers RGB at full size and the targets stay full size (`pooled_encoder_input`).
+  encoder_input_pool: int = 1
   encoder_widths: Sequence[int] = (64, 128, 256)
   encoder_blocks: Sequence[int] = (3, 4, 6)
   # Slot attention (§1.2).
@@ -267,6 +293,8 @@ class SlotLifter(nn.Module):
     b, v, height, width, _ = source_images.shape
     x = encoder_input(images=source_images, cam_to_world=source_cam_to_world,
                       intrinsics=source_intrinsics)  # [B, V, H, W, 9]
+    x = pooled_encoder_input(x, self.encoder_input_pool)  # [B, V, H/p, W/p, 9]
+    height, width = x.shape[2], x.shape[3]
     # float32 out of the encoder: lifting samples these maps bilinearly, slot attention normalises.
     feats = self.encoder(x.reshape((b * v, height, width, x.shape[-1]))).astype(
         jnp.float32)  # [B·V, h, w, D]
@@ -406,6 +434,7 @@ def build_model(config: ml_collections.ConfigDict) -> SlotLifter:
       encoder_widths=tuple(int(x) for x in m.encoder_widths),
       encoder_blocks=tuple(int(x) for x in m.encoder_blocks),
       encoder_output_stride=int(m.get("encoder_output_stride", 4)),
+      encoder_input_pool=int(m.get("encoder_input_pool", 1)),
       num_slots=int(m.num_slots),
       slot_dim=int(m.slot_dim),
       slot_iters=int(m.slot_iters),

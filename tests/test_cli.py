@@ -175,6 +175,8 @@ FOUND_AFTER_JAX_STARTS = ("data.root does not exist", "exists and is not a direc
      "render.supersample is 0; it must be an integer ≥ 1"),
     (["--config=configs/clevr.py:smoke", "--config.model.encoder_output_stride=3"],
      "model.encoder_output_stride is 3; it must be one of (4, 2)"),
+    (["--config=configs/clevr.py:smoke", "--config.model.encoder_input_pool=3"],
+     "model.encoder_input_pool is 3; data.image_size 32 must divide by it"),
     (["--config=configs/clevr.py:smoke", "--config.train.ray_chunks=3"],
      "train.rays_per_scene=32 must be a multiple of train.ray_chunks=3"),
     (["--config=configs/clevr.py:smoke", "--mode=eval", "--config.train.ema_decay=-0.1"],

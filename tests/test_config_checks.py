@@ -58,6 +58,7 @@ def smoke(**overrides):
     dict(train__ema_decay=0.0), dict(train__ema_decay=0.999, train__ema_start_step=0),
     dict(render__supersample=3),
     dict(model__encoder_output_stride=2),
+    dict(model__encoder_input_pool=2), dict(model__encoder_input_pool=4),
     dict(data__frame="source_azimuth"), dict(data__format="dtu"),
     dict(train__ray_stages=((0, 32), (4, 64))),
     dict(data__sampler="device", train__steps_per_dispatch=1, data__curriculum=((0, 1), (3, 3))),
@@ -102,6 +103,9 @@ def test_settings_on_the_allowed_side_pass(overrides):
     (dict(render__supersample=0), "render.supersample is 0; it must be an integer ≥ 1"),
     (dict(render__supersample=True), "render.supersample is True"),
     (dict(model__encoder_output_stride=3), "model.encoder_output_stride is 3"),
+    (dict(model__encoder_input_pool=0), "model.encoder_input_pool is 0; it must be an integer ≥ 1"),
+    (dict(model__encoder_input_pool=3),
+     "model.encoder_input_pool is 3; data.image_size 32 must divide by it"),
     (dict(train__ray_stages=((0, 32), (0, 64))), "train.ray_stages: start steps [0, 0] must be "
                                                  "≥ 0 and strictly increasing"),
     (dict(train__ray_stages=((0, 0),)), "train.ray_stages: 0 (stage from step 0) must lie in"),

@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import tiny_model as tm
+from random_cameras import random_cameras
 from tiny_model import B, H, W, K, D, jit
 
 from slotlifter_jax import defaults
@@ -214,3 +215,59 @@ def test_encoder_output_stride_2_gives_slot_attention_the_finer_grid():
   np.testing.assert_allclose(encoded.slot_attn.sum(axis=1), 1.0, atol=1e-5)
   labels = views.source_attention_labels(encoded, (H, W))
   assert labels.shape == (1, H, W)
+
+
+def test_pooled_encoder_input_is_the_box_filtered_view_and_its_centre_rays():
+  """model.encoder_input_pool = p: RGB and origin are the p×p block means (NumPy), and the
+  direction is the ray through the block's centre pixel coordinate, to O((p/focal)²)."""
+  rng = np.random.default_rng(4)
+  cams, ks = random_cameras(rng, 2, H, W)
+  images = rng.uniform(0, 1, size=(2, H, W, 3)).astype(np.float32)
+  x = np.asarray(model_lib.encoder_input(images=jnp.asarray(images), cam_to_world=jnp.asarray(
+      cams, jnp.float32), intrinsics=jnp.asarray(ks, jnp.float32)))  # [2, H, W, 9]
+  pooled = np.asarray(model_lib.pooled_encoder_input(jnp.asarray(x), 2))
+  assert pooled.shape == (2, H // 2, W // 2, 9)
+  block_mean = images.reshape(2, H // 2, 2, W // 2, 2, 3).mean(axis=(2, 4))
+  np.testing.assert_allclose(pooled[..., :3], block_mean, atol=1e-6)
+  np.testing.assert_allclose(pooled[..., 3:6], np.broadcast_to(
+      cams[:, None, None, :3, 3], pooled[..., 3:6].shape), atol=1e-5)
+  # The ray through the block centre (u, v) = (2j + 0.5, 2i + 0.5), by hand: R K⁻¹ (u, v, 1).
+  v, u = np.meshgrid(2 * np.arange(H // 2) + 0.5, 2 * np.arange(W // 2) + 0.5, indexing="ij")
+  pix = np.stack([u, v, np.ones_like(u)], axis=-1)  # [H/2, W/2, 3]
+  for n in range(2):
+    d = pix @ np.linalg.inv(ks[n]).T @ cams[n, :3, :3].T
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    np.testing.assert_allclose(pooled[n, ..., 6:9], d, atol=2e-4)
+  np.testing.assert_array_equal(model_lib.pooled_encoder_input(jnp.asarray(x), 1), x)
+  with pytest.raises(ValueError, match=r"model.encoder_input_pool is 3; the source views' 20×28"):
+    model_lib.pooled_encoder_input(jnp.asarray(x), 3)
+
+
+def test_encoder_input_pool_feeds_the_encoder_the_pooled_view_and_lifts_full_size_colour():
+  """With pool 2 and stride 2 the feature map is H/4×W/4, equal to the pool-1 encoder run on the
+  pooled input by hand; the parameters are the same tree; lifting still reads full-size RGB."""
+  base = tm.tiny(encoder_output_stride=2)
+  pooled_model = tm.tiny(encoder_output_stride=2, encoder_input_pool=2)
+  inputs = tm.make_inputs(1, seed=5)
+  sources = tm.sources(inputs)
+  variables = tm.init(base, inputs)
+  encoded = jit(lambda: pooled_model.apply(variables, **sources, train=False,
+                                           method=pooled_model.encode))()
+  chex.assert_shape(encoded.features, (B, 1, H // 4, W // 4, D))
+  chex.assert_shape(encoded.slot_attn, (B, K, (H // 4) * (W // 4)))
+  x = model_lib.encoder_input(images=sources["source_images"],
+                              cam_to_world=sources["source_cam_to_world"],
+                              intrinsics=sources["source_intrinsics"])[:, 0]  # [B, H, W, 9]
+  by_hand = np.asarray(x).reshape(B, H // 2, 2, W // 2, 2, 9).mean(axis=(2, 4))
+  by_hand[..., 6:9] /= np.linalg.norm(by_hand[..., 6:9], axis=-1, keepdims=True)
+  reference = jit(lambda z: base.apply(variables, z, method=lambda m, z: m.encoder(z)))(
+      jnp.asarray(by_hand))
+  np.testing.assert_allclose(encoded.features[:, 0], reference, atol=1e-4)
+  # Lifting reads the full-size view: swapping the two columns of every 2×2 block leaves the
+  # pooled view, and so the features, as they were, but not the colours the points gather.
+  swapped = np.asarray(inputs["source_images"]).reshape(B, 1, H, W // 2, 2, 3)[..., ::-1, :]
+  other = dict(inputs, source_images=jnp.asarray(swapped.reshape(B, 1, H, W, 3)))
+  run = jit(lambda i: pooled_model.apply(variables, **i, train=False))
+  out, out_swapped = run(inputs), run(other)
+  np.testing.assert_allclose(out_swapped.encoded.features, out.encoded.features, atol=1e-6)
+  assert np.abs(np.asarray(out_swapped.render.coarse.colour - out.render.coarse.colour)).max() > 1e-3
