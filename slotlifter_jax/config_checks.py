@@ -120,6 +120,10 @@ def restarts_problem(train) -> Optional[str]:
             f"train.eval_every={train.eval_every}, a step that validates")
   if int(train.get("restarts", 0)) < 0:
     return f"train.restarts={train.restarts} must be ≥ 0"
+  agreement = float(train.get("restart_min_attn_agreement", -1.0))
+  if not -1.0 <= agreement <= 1.0:  # also NaN
+    return (f"train.restart_min_attn_agreement={agreement} must lie in [-1, 1] (an adjusted Rand "
+            f"index; -1: no such check)")
   signal = train.get("restart_signal", "auto")
   if signal not in ("auto", "labelled", "mask_free"):
     return (f"train.restart_signal={signal!r} must be 'auto', 'labelled' or 'mask_free' "

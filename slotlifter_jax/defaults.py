@@ -216,6 +216,9 @@ def base_config() -> ml_collections.ConfigDict:
   # and, mask-free, the mean per-pixel slot entropy / log K above which a spread slot split (a floor
   # shared by several slots) restarts the attempt; 1: never
   t.restart_max_pixel_entropy = 1.0
+  # and, mask-free, the adjusted Rand index between slot attention's grouping of the validation
+  # source views and the rendered split of them below which the attempt restarts; −1: never
+  t.restart_min_attn_agreement = -1.0
   t.log_every = 50
   t.eval_every = 5000
   t.eval_scenes = 8  # validation scenes used at each evaluation interval

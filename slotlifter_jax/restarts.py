@@ -7,11 +7,14 @@ Two triggers, both read from the validation that just ran:
     embedded clevr set the worse of validation FG-ARI and NV-ARI at step 14 000 already separates
     the seeds that end split from those that do not (slotlifter_jax/tools/early_check.py);
   - "mask_free": fewer than `train.restart_min_active_slots` slots in use on the validation views,
-    or a mean per-pixel slot entropy above `train.restart_max_pixel_entropy`
-    (`validation.mask_free_statistics`), read from the model's outputs alone, for sets without
-    masks (a capture, the kitchens), which have no ARI to read. Slots in use alone cannot tell
-    objects from a floor spread over several slots; the spread floor shares its pixels among
-    them, which the entropy reads (slotlifter_jax/mask_free.py);
+    a mean per-pixel slot entropy above `train.restart_max_pixel_entropy`, or slot attention's
+    grouping of the source view agreeing with the rendered split less than
+    `train.restart_min_attn_agreement` (`validation.mask_free_statistics`), read from the model's
+    outputs alone, for sets without masks (a capture, the kitchens), which have no ARI to read.
+    Slots in use alone cannot tell objects from a floor spread over several slots; the spread
+    floor shares its pixels among them, which the entropy reads; a run whose slot attention has
+    not begun to group what the decoder renders reads near 0 agreement
+    (slotlifter_jax/mask_free.py);
   - "auto" (default): "labelled" when the validation scenes have masks, else "mask_free".
 Like `select_by`, this is model selection on the validation split, never the test split, and
 training still sees only the photometric loss.
@@ -64,7 +67,8 @@ def reason(train_config, step: int, val: dict, *, has_masks: bool = True) -> Opt
   if check_signal(train_config, has_masks=has_masks) == "mask_free":
     why = mask_free.shortfall(
         val, min_active_slots=float(train_config.get("restart_min_active_slots", 0.0)),
-        max_pixel_entropy=float(train_config.get("restart_max_pixel_entropy", 1.0)))
+        max_pixel_entropy=float(train_config.get("restart_max_pixel_entropy", 1.0)),
+        min_attn_agreement=float(train_config.get("restart_min_attn_agreement", -1.0)))
     return None if why is None else f"{why} at step {check} (mask-free check)"
   floor = float(train_config.get("restart_min_score", 0.0))
   if val["score"] < floor:

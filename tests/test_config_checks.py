@@ -55,6 +55,7 @@ def smoke(**overrides):
     dict(train__lr_cooldown_final=0.0), dict(train__lr_cooldown_final=1.0),
     dict(train__slot_attention_lr_scale=0.0),
     dict(train__restart_check_step=3, train__restarts=1),  # on eval_every's grid
+    dict(train__restart_min_attn_agreement=-1.0), dict(train__restart_min_attn_agreement=1.0),
     dict(train__ema_decay=0.0), dict(train__ema_decay=0.999, train__ema_start_step=0),
     dict(render__supersample=3),
     dict(model__encoder_output_stride=2),
@@ -79,6 +80,10 @@ def test_settings_on_the_allowed_side_pass(overrides):
     (dict(train__restart_check_step=4), "train.restart_check_step=4 must be 0 (no check) or a "
                                         "multiple of train.eval_every=3"),
     (dict(train__restarts=-1), "train.restarts=-1 must be ≥ 0"),
+    (dict(train__restart_min_attn_agreement=1.5), "train.restart_min_attn_agreement=1.5 must lie "
+                                                  "in [-1, 1]"),
+    (dict(train__restart_min_attn_agreement=float("nan")),
+     "train.restart_min_attn_agreement=nan must lie in [-1, 1]"),
     (dict(train__ema_decay=1.0), "train.ema_decay is 1.0"),
     (dict(train__ema_start_step=-1), "train.ema_start_step is -1"),
     (dict(train__grad_accum_chunks=3), "train.batch_scenes=2 must be a multiple of "

@@ -7,9 +7,9 @@ import sys
 TOOL = [sys.executable, "-m", "slotlifter_jax.tools.early_check"]
 
 
-def _write_run(folder, name, val_rows, slots=None, entropy=None):
-  """val_rows: (step, fg_ari, nv_ari); slots, entropy: {step: mf_active_slots} and
-  {step: mf_pixel_entropy}, or None."""
+def _write_run(folder, name, val_rows, slots=None, entropy=None, agreement=None):
+  """val_rows: (step, fg_ari, nv_ari); slots, entropy, agreement: {step: mf_active_slots},
+  {step: mf_pixel_entropy} and {step: mf_attn_agreement}, or None."""
   path = folder / f"{name}_val_metrics.jsonl"
   with open(path, "w") as f:
     for step, fg, nv in val_rows:
@@ -18,6 +18,8 @@ def _write_run(folder, name, val_rows, slots=None, entropy=None):
         row["mf_active_slots"] = slots[step]
       if entropy and step in entropy:
         row["mf_pixel_entropy"] = entropy[step]
+      if agreement and step in agreement:
+        row["mf_attn_agreement"] = agreement[step]
       f.write(json.dumps(row) + "\n")
   # A test evaluation beside it must change nothing: the tool never reads it.
   (folder / f"{name}_test_metrics.json").write_text("not json: opening this is a failure")
@@ -50,10 +52,10 @@ def test_rule_outcomes_and_counts_by_hand(tmp_path):
   result = _run("--step=4", "--min_score=0.55", "--min_active_slots=3", *runs)
   assert result.returncode == 0, result.stderr
   rows = _rows(result.stdout)
-  assert "| 0.600 | keep | 0.850 (6) | yes | 4.00 | 0.20 | keep |" in rows["a"]
-  assert "| 0.500 | restart | 0.500 (4) | no | 4.00 | 0.50 | keep |" in rows["b"]
-  assert "| 0.560 | keep | 0.790 (6) | no | 2.00 | – | restart |" in rows["c"]
-  assert "| 0.540 | restart | 0.800 (6) | yes | – | – | – |" in rows["d"]
+  assert "| 0.600 | keep | 0.850 (6) | yes | 4.00 | 0.20 | – | keep |" in rows["a"]
+  assert "| 0.500 | restart | 0.500 (4) | no | 4.00 | 0.50 | – | keep |" in rows["b"]
+  assert "| 0.560 | keep | 0.790 (6) | no | 2.00 | – | – | restart |" in rows["c"]
+  assert "| 0.540 | restart | 0.800 (6) | yes | – | – | – | – |" in rows["d"]
   lines = result.stdout.splitlines()
   assert lines[-2] == "4 runs: the rule keeps 1 that end below the target and restarts 1 that reach it"
   # a keeps with both, b and c are decided differently, d has no mask-free statistics
@@ -64,8 +66,33 @@ def test_rule_outcomes_and_counts_by_hand(tmp_path):
                 "--max_pixel_entropy=0.33", *runs)
   assert result.returncode == 0, result.stderr
   rows = _rows(result.stdout)
-  assert rows["a"].endswith("| 4.00 | 0.20 | keep |")
-  assert rows["b"].endswith("| 4.00 | 0.50 | restart |")
+  assert rows["a"].endswith("| 4.00 | 0.20 | – | keep |")
+  assert rows["b"].endswith("| 4.00 | 0.50 | – | restart |")
+  assert result.stdout.splitlines()[-1] == (
+      "3 runs log the mask-free statistics: the two rules decide alike on 2")
+
+
+def test_the_agreement_floor_restarts_runs_whose_slot_attention_does_not_group(tmp_path):
+  runs = [
+      # slot attention agrees with the rendering (0.30) and the run ends split
+      _write_run(tmp_path, "grouping", [(4, 0.60, 0.60), (6, 0.85, 0.82)], {4: 3.0}, {4: 0.2},
+                 {4: 0.30}),
+      # as many slots in use and as low an entropy, but slot attention groups nothing the
+      # decoder renders (0.01): the slots and entropy keep it, the agreement floor does not
+      _write_run(tmp_path, "parting", [(4, 0.30, 0.40), (6, 0.5, 0.6)], {4: 3.0}, {4: 0.2},
+                 {4: 0.01}),
+      # no agreement logged (an older log): restarted, since nothing says it groups
+      _write_run(tmp_path, "older", [(4, 0.60, 0.60), (6, 0.9, 0.9)], {4: 3.0}, {4: 0.2}),
+  ]
+  common = ("--step=4", "--min_score=0.55", "--min_active_slots=3", "--max_pixel_entropy=0.33")
+  rows = _rows(_run(*common, *runs).stdout)
+  assert [rows[n].endswith("| keep |") for n in ("grouping", "parting", "older")] == [True] * 3
+  result = _run(*common, "--min_attn_agreement=0.15", *runs)
+  assert result.returncode == 0, result.stderr
+  rows = _rows(result.stdout)
+  assert rows["grouping"].endswith("| 3.00 | 0.20 | 0.30 | keep |")
+  assert rows["parting"].endswith("| 3.00 | 0.20 | 0.01 | restart |")
+  assert rows["older"].endswith("| 3.00 | 0.20 | – | restart |")
   assert result.stdout.splitlines()[-1] == (
       "3 runs log the mask-free statistics: the two rules decide alike on 2")
 

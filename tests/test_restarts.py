@@ -189,6 +189,15 @@ def test_mask_free_check_on_a_constructed_metrics_log():
   assert decide(dict(log[1], mf_active_slots=4.4), has_masks=False) is not None
   t.restart_max_pixel_entropy = 1.0
   assert decide(spread, has_masks=False) is None
+  # The agreement floor: slots in use whose split slot attention does not share (ARI 0.02)
+  # restart; one that agrees (0.30) is kept; a log without the statistic restarts; −1 is off.
+  t.restart_min_attn_agreement = 0.15
+  assert "agrees with the rendered split at 0.02" in decide(
+      dict(spread, mf_attn_agreement=0.02), has_masks=False)
+  assert decide(dict(spread, mf_attn_agreement=0.30), has_masks=False) is None
+  assert decide(spread, has_masks=False) is not None
+  t.restart_min_attn_agreement = -1.0
+  assert decide(dict(spread, mf_attn_agreement=-0.2), has_masks=False) is None
   # With masks, "auto" is the labelled check: a score of 19 passes 0.55 whatever the slots.
   assert decide(log[1], has_masks=True) is None
   t.restart_signal = "mask_free"

@@ -5,7 +5,7 @@
     python -m slotlifter_jax.tools.early_check --sweep RUN ...
     python -m slotlifter_jax.tools.early_check --sweep @experiments/early_check_runs.txt
     python -m slotlifter_jax.tools.early_check --step=14000 --min_score=0.55 \
-        --min_active_slots=3 [--max_pixel_entropy=0.33] RUN ...
+        --min_active_slots=3 [--max_pixel_entropy=0.33] [--min_attn_agreement=0.15] RUN ...
 
 RUN is a run folder (its metrics.jsonl) or a copied `NAME_val_metrics.jsonl`, as in
 experiments/results/. Everything here reads the validation split only, so that a rule fitted
@@ -16,8 +16,9 @@ it "ends split" when that reaches `--target`.
 For each run it prints the score at `--step`, what the labelled rule would do (keep the attempt or
 restart it from a new seed) and the outcome; the last line counts how often the rule keeps a run
 that ends below the target and restarts one that reaches it. With `--min_active_slots` it also
-applies the mask-free rule (slots in use on the validation views at `--step`, and with
-`--max_pixel_entropy` their mean per-pixel slot entropy; `validation.mask_free_statistics`,
+applies the mask-free rule (slots in use on the validation views at `--step`, with
+`--max_pixel_entropy` their mean per-pixel slot entropy, with `--min_attn_agreement` the agreement
+of slot attention's grouping with the rendered split; `validation.mask_free_statistics`,
 `mask_free.shortfall`) to the runs whose logs have it, and counts how often the two
 rules decide alike. `--sweep` fits the labelled rule instead: every validated step and a grid of
 thresholds, ranked by the number of misjudged runs.
@@ -68,7 +69,8 @@ def load(run: str) -> dict[int, dict]:
 
 
 def check(run: str, rows: dict[int, dict], *, step: int, min_score: float, target: float,
-          min_active_slots=None, max_pixel_entropy: float = 1.0) -> dict:
+          min_active_slots=None, max_pixel_entropy: float = 1.0,
+          min_attn_agreement: float = -1.0) -> dict:
   if step not in rows:
     raise ValueError(f"{_path(run)}: no validation at step {step} (steps {min(rows)}–{max(rows)})")
   best_step = max(rows, key=lambda s: (_score(rows[s]), -s))
@@ -78,9 +80,10 @@ def check(run: str, rows: dict[int, dict], *, step: int, min_score: float, targe
   if min_active_slots is not None and "mf_active_slots" in rows[step]:
     out["slots"] = float(rows[step]["mf_active_slots"])
     out["entropy"] = rows[step].get("mf_pixel_entropy")
+    out["agreement"] = rows[step].get("mf_attn_agreement")
     out["keep_mask_free"] = mask_free.shortfall(
-        rows[step], min_active_slots=min_active_slots,
-        max_pixel_entropy=max_pixel_entropy) is None
+        rows[step], min_active_slots=min_active_slots, max_pixel_entropy=max_pixel_entropy,
+        min_attn_agreement=min_attn_agreement) is None
   return out
 
 
@@ -112,6 +115,9 @@ def main(argv=None) -> int:
   parser.add_argument("--min_active_slots", type=float)
   parser.add_argument("--max_pixel_entropy", type=float, default=1.0,
                       help="with --min_active_slots: the mask-free rule's entropy cap (1: none)")
+  parser.add_argument("--min_attn_agreement", type=float, default=-1.0,
+                      help="with --min_active_slots: the mask-free rule's least agreement of slot "
+                           "attention with the rendered split (-1: none)")
   parser.add_argument("--sweep", action="store_true")
   parser.add_argument("--top", type=int, default=10, help="--sweep: rules to print")
   args = parser.parse_args(argv)
@@ -125,7 +131,8 @@ def main(argv=None) -> int:
     else:
       results = [check(r, rows, step=args.step, min_score=args.min_score, target=args.target,
                        min_active_slots=args.min_active_slots,
-                       max_pixel_entropy=args.max_pixel_entropy)
+                       max_pixel_entropy=args.max_pixel_entropy,
+                       min_attn_agreement=args.min_attn_agreement)
                  for r, rows in zip(args.runs, all_rows)]
   except ValueError as e:
     print(f"error: {e}", file=sys.stderr)
@@ -141,15 +148,16 @@ def main(argv=None) -> int:
     return 0
   with_mask_free = args.min_active_slots is not None
   print(f"| run | min(FG, NV) at {args.step} | rule | best validation (step) | ends split |"
-        + (" slots in use | pixel entropy | mask-free rule |" if with_mask_free else ""))
-  print("|---|---|---|---|---|" + ("---|---|---|" if with_mask_free else ""))
+        + (" slots in use | pixel entropy | agreement | mask-free rule |" if with_mask_free
+           else ""))
+  print("|---|---|---|---|---|" + ("---|---|---|---|" if with_mask_free else ""))
   for r in results:
     name = os.path.basename(r["run"].rstrip("/")).removesuffix("_val_metrics.jsonl")
     line = (f"| {name} | {r['early']:.3f} | {'keep' if r['keep'] else 'restart'} | "
             f"{r['best']:.3f} ({r['best_step']}) | {'yes' if r['ends_split'] else 'no'} |")
     if with_mask_free:
-      line += (" – | – | – |" if r["slots"] is None else
-               f" {r['slots']:.2f} | {_maybe(r['entropy'])} |"
+      line += (" – | – | – | – |" if r["slots"] is None else
+               f" {r['slots']:.2f} | {_maybe(r['entropy'])} | {_maybe(r['agreement'])} |"
                f" {'keep' if r['keep_mask_free'] else 'restart'} |")
     print(line)
   kept_failing = sum(r["keep"] and not r["ends_split"] for r in results)
