@@ -4,16 +4,12 @@ Paper settings (docs/method.md §1–2): 128×128, 1 source view, K = 5, D = 64,
 50k steps.
 Run: python -m slotlifter_jax.main --config=configs/room_chair.py[:scene|:paper_cpu|:smoke] --workdir=DIR
 Real data: --config.data.root=/path/to/uorf_data (holding room_chair_{train,test}).
-`:scene` is the clevr recipe with the room's own slab (below), two changes read on validation
-(experiments/journal/2026-12.md, "Textured rooms: textured boxes and the room's chairs to step
-50 000"), and does not reach the targets: rays drawn towards what differs between views
-(data.ray_sampling=floor_parallax: the contrast sampler spends its rays on the floor's texture;
-with it CLEVR's objects in the room had not parted by step 14 000, NV-ARI 0.24 against 0.65),
-and no restart check (every room run that parts later, textured boxes and CLEVR's objects in
-the room, scores under the check's 0.55 at step 14 000). The ladder's rungs are data options: data.plain_background, data.plain_objects,
-data.no_walls, data.room_objects (chairs, solid, boxes, or clevr: the room holding CLEVR's
-objects), data.object_scale (≤ 1: smaller objects), data.grey_floor, data.min_objects/max_objects
-(journal: "Textured rooms: the room ladder" and the sections after it).
+`:scene` is the clevr recipe with the room's own slab (below), rays drawn where the views
+disagree (data.ray_sampling=floor_parallax) and no restart check; docs/rooms.md §1 says why each,
+and that it does not split the embedded set yet. The ladder's rungs are data options:
+data.plain_background, data.plain_objects, data.no_walls, data.room_objects (chairs, solid, boxes,
+or clevr: the room holding CLEVR's objects), data.object_scale (≤ 1: smaller objects),
+data.grey_floor, data.min_objects/max_objects (docs/rooms.md §3).
 """
 
 from slotlifter_jax import defaults

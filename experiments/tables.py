@@ -26,7 +26,12 @@ import sys
 from typing import Callable
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-RESULTS = os.path.join(REPO, "experiments", "results")
+if REPO not in sys.path:  # run as a script: experiments/ is a package of the repository root
+  sys.path.insert(0, REPO)
+
+from experiments import room_tables  # noqa: E402
+from experiments.table_common import RESULTS, TableError, described_host, load_json  # noqa: E402
+from experiments.table_common import files_line as _files_line  # noqa: E402
 PAGES = ("README.md", "docs")  # README.md and every docs/*.md
 MARKER = re.compile(r"^<!-- (/?)table:([A-Za-z0-9_]+) -->$")
 
@@ -63,17 +68,8 @@ LEGACY_HOSTS = {name: "a 2-core AMD EPYC virtual machine (mimalloc)"
                 for _, *files in FAST_SEEDS for name in files}
 
 
-class TableError(Exception):
-  pass
-
-
 def _load(name: str) -> dict:
-  path = os.path.join(RESULTS, name)
-  try:
-    with open(path, encoding="utf-8") as f:
-      return json.load(f)
-  except OSError as e:
-    raise TableError(f"experiments/results/{name}: cannot read ({e.strerror})") from None
+  return load_json(name, RESULTS)  # RESULTS read at call time, so tests may point it elsewhere
 
 
 def _mean(data: dict, metric: str) -> float:
@@ -89,20 +85,11 @@ def host(names) -> str:
   count, else LEGACY_HOSTS; one description, or each one's where they differ."""
   hosts = []
   for name in names:
-    record = _load(name).get("provenance") or {}
-    if record.get("platform") not in (None, "cpu"):
-      described = f"{record.get('device_kind') or record['platform']}"
-    elif record.get("cpu_model"):
-      described = f"a {record.get('cpu_count')}-core {record['cpu_model']}"
-    else:
-      described = LEGACY_HOSTS.get(name, "not recorded")
+    described = (described_host(_load(name).get("provenance") or {})
+                 or LEGACY_HOSTS.get(name, "not recorded"))
     if described not in hosts:
       hosts.append(described)
   return "; ".join(hosts)
-
-
-def _files_line(names) -> str:
-  return "Files: " + ", ".join(f"`experiments/results/{n}`" for n in names) + "."
 
 
 def _std_row(values: list[float], fmt: str) -> str:
@@ -418,6 +405,7 @@ TABLES: dict[str, Callable[[], list[str]]] = {
     "gpu_figures": gpu_figures,
     "clevr_heldout": clevr_heldout,
     "edit_clevr": edit_clevr,
+    **room_tables.TABLES,
 }
 
 

@@ -1,0 +1,70 @@
+"""experiments/room_tables.py: docs/rooms.md's tables read the room runs' files as written, on
+hand-made files whose numbers are known."""
+
+import json
+import os
+import sys
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, REPO)
+
+import pytest  # noqa: E402
+
+from experiments import room_tables  # noqa: E402
+from experiments import table_common  # noqa: E402
+
+
+@pytest.fixture
+def results(tmp_path, monkeypatch):
+  monkeypatch.setattr(table_common, "RESULTS", str(tmp_path))
+  return tmp_path
+
+
+def _write_eval(results, run, *, split="val"):
+  metrics = {k: {"mean": v, "stderr": 0.01} for k, v in
+             dict(fg_ari=0.5, fg_ari_multi=0.7, nv_ari=0.6, psnr_novel=18.0).items()}
+  (results / f"{run}_val100_metrics.json").write_text(json.dumps(
+      {"split": split, "checkpoint": {"step": 42000}, "parameters": "average", "metrics": metrics,
+       "provenance": {"platform": "cpu", "cpu_model": "Test CPU", "cpu_count": 2}}))
+  # Two scenes of one object (FG-ARI ≥ 2 undefined), two of two, one of three.
+  lines = ["scene,fg_ari_multi,active_slots,num_objects", "a,nan,2,1", "b,nan,3,1",
+           "c,0.5,3,2", "d,0.9,4,2", "e,0.6,5,3"]
+  (results / f"{run}_val100_per_scene.csv").write_text("\n".join(lines) + "\n")
+
+
+def test_val100_splits_the_scenes_by_their_object_count(results, monkeypatch):
+  monkeypatch.setattr(room_tables, "ROOM_VAL100", (("chairs", "run"),))
+  _write_eval(results, "run")
+  lines = room_tables.room_val100()
+  row = lines[2]
+  # FG-ARI ≥ 2 by count: (0.5 + 0.9) / 2 = 0.70 for two objects, 0.60 for three; one-object
+  # scenes have none. Slots in use: 2.5, 3.5, 5.0.
+  assert row.startswith("| chairs | step 42000, average | 0.500 ± 0.010 | 0.700 ± 0.010 |"), row
+  assert "| 0.70 / 0.60 | 2.5 / 3.5 / 5.0 |" in row, row
+  assert "a 2-core Test CPU" in lines[4]
+
+
+def test_val100_refuses_an_evaluation_of_another_split(results, monkeypatch):
+  monkeypatch.setattr(room_tables, "ROOM_VAL100", (("chairs", "run"),))
+  _write_eval(results, "run", split="test")
+  with pytest.raises(table_common.TableError, match="run_val100_metrics.json: split 'test'"):
+    room_tables.room_val100()
+
+
+def test_curves_keep_the_last_validation_of_a_step_validated_again_after_a_resume(results,
+                                                                                  monkeypatch):
+  monkeypatch.setattr(room_tables, "ROOM_CURVES", (("chairs", "run"),))
+  row = lambda step, fg: json.dumps(dict(step=step, kind="val", fg_ari_multi=fg, nv_ari=0.3,
+                                         attn_fg_ari=0.2, mf_attn_agreement=fg / 2))
+  train = json.dumps(dict(step=4000, kind="train", loss=0.1))
+  (results / "run_val_metrics.jsonl").write_text(
+      "\n".join([row(4000, 0.1), train, row(8000, 0.4), row(8000, 0.45)]) + "\n")
+  line = room_tables.room_curves()[2]
+  assert line == ("| chairs | 0.10 / 0.30 / 0.20 | 0.45 / 0.30 / 0.20 | – | – | – | – | 8000 | "
+                  "0.05 / – / 0.23 / – |")
+
+
+def test_a_missing_file_names_itself(results, monkeypatch):
+  monkeypatch.setattr(room_tables, "ROOM_CURVES", (("chairs", "absent"),))
+  with pytest.raises(table_common.TableError, match="absent_val_metrics.jsonl: cannot read"):
+    room_tables.room_curves()
