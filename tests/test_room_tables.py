@@ -61,7 +61,7 @@ def test_curves_keep_the_last_validation_of_a_step_validated_again_after_a_resum
       "\n".join([row(4000, 0.1), train, row(8000, 0.4), row(8000, 0.45)]) + "\n")
   line = room_tables.room_curves()[2]
   assert line == ("| chairs | 0.10 / 0.30 / 0.20 | 0.45 / 0.30 / 0.20 | – | – | – | – | 8000 | "
-                  "0.05 / – / 0.23 / – |")
+                  "– / 0.05 / – / 0.23 / – |")
 
 
 def test_a_missing_file_names_itself(results, monkeypatch):
