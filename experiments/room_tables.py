@@ -27,7 +27,8 @@ ROOM_VAL100 = (
 )
 
 # (label, run name): RESULTS/<name>_val_metrics.jsonl. Every run is the room recipe
-# (`configs/room_chair.py:scene`, K = 5, 1–4 objects) with the overrides its label names.
+# (`configs/room_chair.py:scene`, K = 5, 1–4 objects) at the size and with the overrides its label
+# names, one attempt each (no restart).
 ROOM_CURVES = (
     ("CLEVR's objects, 64 px", "room_probe_clevr_objects_1to4_k5_parallax"),
     ("textured boxes at 0.6, 64 px", "room_probe_boxes_x06_parallax"),
@@ -42,6 +43,8 @@ ROOM_CURVES = (
     ("chairs, 128 px, seed 2", "room_probe_chairs_128px_seed2_parallax"),
     ("chairs, 128 px, seed 3", "room_probe_chairs_128px_seed3_parallax"),
     ("chairs, 128 px, seed 4", "room_probe_chairs_128px_seed4_parallax"),
+    ("chairs, 128 px, seed 5", "room_probe_chairs_128px_seed5_parallax"),
+    ("chairs, 128 px, seed 6", "room_probe_chairs_128px_seed6_parallax"),
     ("chairs, 128 px, seed 1, contrast_mix 0.8", "room_probe_chairs_128px_mix08_seed1_parallax"),
     ("chairs, 128 px, seed 3, contrast_mix 0.8", "room_probe_chairs_128px_mix08_seed3_parallax"),
 )
@@ -140,7 +143,8 @@ def room_curves() -> list[str]:
                  "stopped before that step). Agreement: the adjusted Rand index between slot attention's "
                  "grouping of the source view and the rendered split of it, read from the model's "
                  "outputs alone (no mask). Every run is `configs/room_chair.py:scene` (K = 5, "
-                 "1–4 objects) with the overrides of its row, seed 0 unless named. The logs record "
+                 "1–4 objects) at the size and with the overrides of its row, without the restart "
+                 "check (each row one attempt), seed 0 unless named. The logs record "
                  "no machine: every run was trained on a 2-core Intel Xeon with AVX-512 and AMX "
                  "(experiments/journal/2026-12.md, the sections \"Textured rooms: …\").",
                  tc.files_line(names)]
