@@ -27,8 +27,8 @@ ROOM_VAL100 = (
 )
 
 # (label, run name): RESULTS/<name>_val_metrics.jsonl. Every run is the room recipe
-# (`configs/room_chair.py:scene`, K = 5, 1–4 objects) at the size and with the overrides its label
-# names, one attempt each (no restart).
+# (`configs/room_chair.py:scene`, K = 5, 1–4 objects unless the label names a count) at the size and
+# with the overrides its label names, one attempt each (no restart).
 ROOM_CURVES = (
     ("CLEVR's objects, 64 px", "room_probe_clevr_objects_1to4_k5_parallax"),
     ("textured boxes at 0.6, 64 px", "room_probe_boxes_x06_parallax"),
@@ -47,6 +47,8 @@ ROOM_CURVES = (
     ("chairs, 128 px, seed 6", "room_probe_chairs_128px_seed6_parallax"),
     ("chairs, 128 px, seed 1, contrast_mix 0.8", "room_probe_chairs_128px_mix08_seed1_parallax"),
     ("chairs, 128 px, seed 3, contrast_mix 0.8", "room_probe_chairs_128px_mix08_seed3_parallax"),
+    ("4 chairs in every scene, 128 px, seed 1", "room_probe_chairs4_128px_seed1_parallax"),
+    ("4 chairs in every scene, 128 px, seed 3", "room_probe_chairs4_128px_seed3_parallax"),
 )
 CURVE_STEPS = (4000, 8000, 14000, 20000, 30000, 50000)
 CURVE_KEYS = ("fg_ari_multi", "nv_ari", "attn_fg_ari")
@@ -143,7 +145,8 @@ def room_curves() -> list[str]:
                  "stopped before that step). Agreement: the adjusted Rand index between slot attention's "
                  "grouping of the source view and the rendered split of it, read from the model's "
                  "outputs alone (no mask). Every run is `configs/room_chair.py:scene` (K = 5, "
-                 "1–4 objects) at the size and with the overrides of its row, without the restart "
+                 "1–4 objects; a row that names a count trains and validates on scenes of that "
+                 "count) at the size and with the overrides of its row, without the restart "
                  "check (each row one attempt), seed 0 unless named. The logs record "
                  "no machine: every run was trained on a 2-core Intel Xeon with AVX-512 and AMX "
                  "(experiments/journal/2026-12.md, the sections \"Textured rooms: …\").",
