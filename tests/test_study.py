@@ -10,6 +10,7 @@ import itertools
 import json
 import math
 import os
+import subprocess
 import sys
 
 import numpy as np
@@ -379,6 +380,31 @@ def test_diagnose_slots_runs_on_a_trained_run(smoke_run, capsys):
   out = capsys.readouterr().out
   assert "step 6, 1 test scenes, K = 4" in out and "2D FG-ARI" in out and "key cosine" in out
   assert "cell ceiling (8×8 cells)" in out and "colour k-means (4 clusters)" in out
+
+
+def test_slot_routing_command_on_a_trained_run(smoke_run, tmp_path):
+  _, row, _ = smoke_run
+  out = tmp_path / "routing.json"
+  done = subprocess.run(
+      [sys.executable, "experiments/slot_routing.py", f"--workdir={row['run_dir']}",
+       "--split=test", "--scenes=1", "--checkpoint=latest", "--min_pixels=1", f"--out={out}"],
+      cwd=REPO, capture_output=True, text=True, timeout=300)
+  assert done.returncode == 0, done.stderr[-2000:]
+  assert "step 6" in done.stdout and "slot roles" in done.stdout
+  record = json.loads(out.read_text())
+  s = record["summary"]
+  # Every object of the one scene is in the objects list, and every pair of them in pairs.
+  assert s["objects"] >= 2 and s["pairs"] == s["objects"] * (s["objects"] - 1) // 2
+  assert s["both_part"] <= min(s["attention_parts"], s["rendering_parts"])
+  for stage in ("attention", "rendering"):
+    shares = np.asarray(s["slot_roles"][stage])  # [region, K]: each region's pixels over K slots
+    assert shares.shape == (2, 4) and np.allclose(shares.sum(-1), 1.0)
+  assert record["split"] == "test" and record["step"] == 6
+  assert record["provenance"]["config"]["model"]["num_slots"] == 4
+  # A run folder without config.json: a one-line error naming the file.
+  bad = subprocess.run([sys.executable, "experiments/slot_routing.py", f"--workdir={tmp_path}"],
+                       cwd=REPO, capture_output=True, text=True, timeout=300)
+  assert bad.returncode != 0 and "config.json: not found" in bad.stderr
 
 
 # ---------------------------------------------------------------------------------------------
