@@ -6,7 +6,9 @@ Written and checked by experiments/tables.py with every other table (`--print=ro
 - room_val100: the `--mode=eval --split=val` evaluations on all 100 validation scenes
   (`room_probe_*_val100_metrics.json`, with their per-scene rows for the split by object count);
 - room_curves: the validation logs the runs wrote while training (`room_probe_*_val_metrics.jsonl`,
-  20 scenes each), at fixed steps.
+  20 scenes each), at fixed steps;
+- room_slot_routing: each chair followed through slot attention and the rendering
+  (`room_slot_routing_*.json`, written by experiments/slot_routing.py).
 """
 
 from __future__ import annotations
@@ -153,4 +155,50 @@ def room_curves() -> list[str]:
                  tc.files_line(names)]
 
 
-TABLES = {"room_val100": room_val100, "room_curves": room_curves}
+# (label, file): RESULTS/<file>.json from `python experiments/slot_routing.py --workdir=DIR
+# --checkpoint=latest --params=trained --scenes=100 --out=...` on the 128 px seeds' runs.
+ROOM_SLOT_ROUTING = (
+    ("seed 2", "room_slot_routing_chairs_128px_seed2_step28633"),
+    ("seed 5", "room_slot_routing_chairs_128px_seed5_step36558"),
+    ("seed 6", "room_slot_routing_chairs_128px_seed6_step16507"),
+    ("seed 3", "room_slot_routing_chairs_128px_seed3_step8208"),
+    ("seed 4", "room_slot_routing_chairs_128px_seed4_step6141"),
+)
+
+
+def room_slot_routing() -> list[str]:
+  """docs/rooms.md: where each stage puts the chairs of the source view, slot by slot."""
+  rows = ["| run | step | pairs parted by attention / rendering / both | parted by attention, "
+          "merged by the rendering | chairs rendered in their attention slot | chairs' pixels "
+          "per slot 0–4, attention | the same, rendering | background in slot 0, attention |",
+          "|---|---|---|---|---|---|---|---|"]
+  names, hosts = [], []
+  for label, run in ROOM_SLOT_ROUTING:
+    name = f"{run}.json"
+    d = tc.load_json(name)
+    if d.get("split") != "val":
+      raise tc.TableError(f"experiments/results/{name}: split {d.get('split')!r}, not 'val': no "
+                          f"room choice reads another split")
+    s = d["summary"]
+    att, ren = s["slot_roles"]["attention"], s["slot_roles"]["rendering"]  # [background, objects]
+    rows.append(
+        f"| {label} | {d['step']} | {s['attention_parts']} / {s['rendering_parts']} / "
+        f"{s['both_part']} of {s['pairs']} | {s['attention_parts_rendering_merges']} "
+        f"({s['merged_into_one_of_theirs']} into one of theirs) | "
+        f"{s['rendered_slot_is_attention_slot']} of {s['objects']} | "
+        + " / ".join(f"{x:.2f}" for x in att[1]) + " | "
+        + " / ".join(f"{x:.2f}" for x in ren[1]) + f" | {att[0][0]:.2f} |")
+    names.append(name)
+    host = tc.described_host(d.get("provenance") or {}) or "a host not recorded"
+    hosts += [host] if host not in hosts else []
+  return rows + ["", "Split: validation, the first 100 scenes; each run's last checkpoint, its "
+                 "trained parameters (the runs stopped at different steps: compare the slots' "
+                 "roles, not the levels). A pair: two chairs of one source view, each with ≥ 20 "
+                 "pixels; a stage parts it when the chairs' majority slots differ. Slots are "
+                 "indexed by slot attention's learned queries (docs/method.md §1.2), so an index "
+                 "keeps its role from scene to scene. Computed on "
+                 f"{'; '.join(hosts)}.", tc.files_line(names)]
+
+
+TABLES = {"room_val100": room_val100, "room_curves": room_curves,
+          "room_slot_routing": room_slot_routing}

@@ -108,6 +108,30 @@ def _cosine(x: np.ndarray, y: np.ndarray) -> float:
   return float(x @ y / max(np.linalg.norm(x) * np.linalg.norm(y), 1e-12))
 
 
+def _rounded(x, digits: int = 4):
+  """x with every float rounded: the per-pair cosines and shares need no more."""
+  if isinstance(x, float):
+    return round(x, digits)
+  if isinstance(x, dict):
+    return {k: _rounded(v, digits) for k, v in x.items()}
+  if isinstance(x, (list, tuple)):
+    return [_rounded(v, digits) for v in x]
+  return x
+
+
+def _lines_json(record: dict) -> str:
+  """JSON with the long lists (pairs, objects) one entry per line, their floats to 4 digits."""
+  plain = json.loads(json.dumps(record, default=lambda x: x.item() if hasattr(x, "item") else str(x)))
+  parts = []
+  for key, value in plain.items():
+    if isinstance(value, list) and value and isinstance(value[0], dict):
+      body = ",\n".join(json.dumps(_rounded(v), separators=(",", ":")) for v in value)
+      parts.append(f"{json.dumps(key)}: [\n{body}\n]")
+    else:
+      parts.append(f"{json.dumps(key)}: {json.dumps(value, separators=(',', ':'))}")
+  return "{\n" + ",\n".join(parts) + "\n}\n"
+
+
 def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   p.add_argument("--workdir", required=True, help="a training run directory")
@@ -196,7 +220,8 @@ def main(argv=None) -> None:
                   provenance=provenance.collect(run.config))
     tmp = args.out + ".tmp"
     with open(tmp, "w") as f:
-      json.dump(record, f, indent=1, default=lambda x: x.item() if hasattr(x, "item") else str(x))
+      # One line per pair and object keeps a 100-scene file small and still diffable.
+      f.write(_lines_json(record))
     os.replace(tmp, args.out)
     print(f"wrote {args.out}")
 
