@@ -26,6 +26,7 @@ ROOM_VAL100 = (
     ("textured boxes at 0.6, 64 px", "room_probe_boxes_x06_parallax"),
     ("chairs, 64 px", "room_probe_chairs_parallax"),
     ("chairs, 128 px (seed 0)", "room_probe_chairs_128px_parallax"),
+    ("chairs, 128 px (seed 5)", "room_probe_chairs_128px_seed5_parallax"),
 )
 
 # (label, run name): RESULTS/<name>_val_metrics.jsonl. Every run is the room recipe
@@ -160,6 +161,7 @@ def room_curves() -> list[str]:
 ROOM_SLOT_ROUTING = (
     ("seed 2", "room_slot_routing_chairs_128px_seed2_step28633"),
     ("seed 5", "room_slot_routing_chairs_128px_seed5_step36558"),
+    ("seed 5", "room_slot_routing_chairs_128px_seed5_step50000"),
     ("seed 6", "room_slot_routing_chairs_128px_seed6_step16507"),
     ("seed 3", "room_slot_routing_chairs_128px_seed3_step8208"),
     ("seed 4", "room_slot_routing_chairs_128px_seed4_step6141"),
