@@ -50,6 +50,8 @@ ROOM_CURVES = (
     ("chairs, 128 px, seed 6", "room_probe_chairs_128px_seed6_parallax"),
     ("chairs, 128 px, seed 1, contrast_mix 0.8", "room_probe_chairs_128px_mix08_seed1_parallax"),
     ("chairs, 128 px, seed 3, contrast_mix 0.8", "room_probe_chairs_128px_mix08_seed3_parallax"),
+    ("chairs, 128 px, seed 1, slot noise to step 50 000",
+     "room_probe_chairs_128px_noise50k_seed1_parallax"),
     ("4 chairs in every scene, 128 px, seed 1", "room_probe_chairs4_128px_seed1_parallax"),
     ("4 chairs in every scene, 128 px, seed 3", "room_probe_chairs4_128px_seed3_parallax"),
 )
@@ -165,6 +167,7 @@ ROOM_SLOT_ROUTING = (
     ("seed 6", "room_slot_routing_chairs_128px_seed6_step16507"),
     ("seed 3", "room_slot_routing_chairs_128px_seed3_step8208"),
     ("seed 4", "room_slot_routing_chairs_128px_seed4_step6141"),
+    ("seed 1, slot noise to step 50 000", "room_slot_routing_chairs_128px_noise50k_seed1_step16308"),
 )
 
 
