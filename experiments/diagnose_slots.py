@@ -78,26 +78,36 @@ def mean_pairwise_cosine(x: np.ndarray) -> float:
   return float((sim.sum() - np.trace(sim)) / (k * (k - 1)))
 
 
-def main(argv=None) -> None:
-  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def add_run_arguments(p: argparse.ArgumentParser) -> None:
+  """The arguments that pick a trained run's checkpoint and scenes (shared with slot_routing.py)."""
   p.add_argument("--workdir", required=True, help="a training run directory")
   p.add_argument("--split", default="val")
   p.add_argument("--scenes", type=int, default=20)
   p.add_argument("--checkpoint", default="best", help="best | latest | a step")
-  args = p.parse_args(argv)
 
+
+def load_run(args, *, params: str = "average"):
+  """evaluate.load_run with the run's own config (DIR/config.json); a one-line exit without it."""
   import ml_collections
   from slotlifter_jax import checkpoints as ckpt_lib
   from slotlifter_jax import evaluate
-  from slotlifter_jax import metrics
-  from slotlifter_jax.rendering import views as views_lib
-
   saved = ckpt_lib.load_saved_config(args.workdir)
   if saved is None:
     raise SystemExit(f"{ckpt_lib.config_path(args.workdir)}: not found; --workdir must be a "
                      f"training run directory")
-  run = evaluate.load_run(ml_collections.ConfigDict(saved), args.workdir, split=args.split,
-                          checkpoint=args.checkpoint, max_scenes=args.scenes)
+  return evaluate.load_run(ml_collections.ConfigDict(saved), args.workdir, split=args.split,
+                           checkpoint=args.checkpoint, max_scenes=args.scenes, params=params)
+
+
+def main(argv=None) -> None:
+  p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+  add_run_arguments(p)
+  args = p.parse_args(argv)
+
+  from slotlifter_jax import metrics
+  from slotlifter_jax.rendering import views as views_lib
+
+  run = load_run(args)
   encode = views_lib.make_encode(run.model)
   signed = run.config.model.colour_range == "signed"
   fg_ari, ari, used, slot_cos, key_cos, ceiling, kmeans = [], [], [], [], [], [], []

@@ -82,6 +82,19 @@ def _by_count(name: str, metric: str) -> dict[int, tuple[float, float]]:
           for n, v in sorted(groups.items())}
 
 
+def _val_record(name: str) -> dict:
+  """RESULTS/<name>, refused unless it read the validation split."""
+  d = tc.load_json(name)
+  if d.get("split") != "val":
+    raise tc.TableError(f"experiments/results/{name}: split {d.get('split')!r}, not 'val': no "
+                        f"room choice reads another split")
+  return d
+
+
+def _host(record: dict) -> str:
+  return tc.described_host(record.get("provenance") or {}) or "a host not recorded"
+
+
 def room_val100() -> list[str]:
   """docs/rooms.md: each room run's best checkpoint on all 100 validation scenes."""
   rows = ["| run | checkpoint | FG-ARI | FG-ARI, ≥ 2 objects | NV-ARI | novel PSNR (dB) | "
@@ -90,10 +103,7 @@ def room_val100() -> list[str]:
   names, hosts = [], []
   for label, run in ROOM_VAL100:
     name, scenes = f"{run}_val100_metrics.json", f"{run}_val100_per_scene.csv"
-    d = tc.load_json(name)
-    if d.get("split") != "val":
-      raise tc.TableError(f"experiments/results/{name}: split {d.get('split')!r}, not 'val': no "
-                          f"room choice reads another split")
+    d = _val_record(name)
     m = d["metrics"]
     cell = lambda k, f="{:.3f}": f"{f.format(m[k]['mean'])} ± {f.format(m[k]['stderr'])}"
     fg = _by_count(scenes, "fg_ari_multi")
@@ -103,8 +113,7 @@ def room_val100() -> list[str]:
                 + " / ".join(f"{fg[n][0]:.2f}" for n in sorted(fg)) + " | "
                 + " / ".join(f"{slots[n][0]:.1f}" for n in sorted(slots)) + " |")
     names += [name, scenes]
-    host = tc.described_host(d.get("provenance") or {}) or "a host not recorded"
-    hosts += [host] if host not in hosts else []
+    hosts += [h for h in [_host(d)] if h not in hosts]
   return rows + ["", "Split: validation, 100 scenes (the split every room choice reads; the "
                  "held-out test split is not read until a recipe splits the set). ± : the standard "
                  "error over the scenes. Checkpoint: the best by validation, `average` = the moving "
@@ -180,10 +189,7 @@ def room_slot_routing() -> list[str]:
   names, hosts = [], []
   for label, run in ROOM_SLOT_ROUTING:
     name = f"{run}.json"
-    d = tc.load_json(name)
-    if d.get("split") != "val":
-      raise tc.TableError(f"experiments/results/{name}: split {d.get('split')!r}, not 'val': no "
-                          f"room choice reads another split")
+    d = _val_record(name)
     s = d["summary"]
     att, ren = s["slot_roles"]["attention"], s["slot_roles"]["rendering"]  # [background, objects]
     rows.append(
@@ -194,8 +200,7 @@ def room_slot_routing() -> list[str]:
         + " / ".join(f"{x:.2f}" for x in att[1]) + " | "
         + " / ".join(f"{x:.2f}" for x in ren[1]) + f" | {att[0][0]:.2f} |")
     names.append(name)
-    host = tc.described_host(d.get("provenance") or {}) or "a host not recorded"
-    hosts += [host] if host not in hosts else []
+    hosts += [h for h in [_host(d)] if h not in hosts]
   return rows + ["", "Split: validation, the first 100 scenes; each run's last checkpoint, its "
                  "trained parameters (the runs stopped at different steps: compare the slots' "
                  "roles, not the levels). A pair: two chairs of one source view, each with ≥ 20 "

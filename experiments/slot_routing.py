@@ -37,6 +37,8 @@ import numpy as np
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, REPO)
 
+from experiments import diagnose_slots  # noqa: E402
+
 
 def majority_slots(mask: np.ndarray, labels: np.ndarray, *,
                    min_pixels: int) -> dict[int, tuple[int, float]]:
@@ -134,27 +136,16 @@ def _lines_json(record: dict) -> str:
 
 def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-  p.add_argument("--workdir", required=True, help="a training run directory")
-  p.add_argument("--split", default="val")
-  p.add_argument("--scenes", type=int, default=20)
-  p.add_argument("--checkpoint", default="best", help="best | latest | a step")
+  diagnose_slots.add_run_arguments(p)
   p.add_argument("--params", default="average", help="average | trained")
   p.add_argument("--min_pixels", type=int, default=20)
   p.add_argument("--out", default="", help="write the summary and the pairs to this JSON file")
   args = p.parse_args(argv)
 
-  import ml_collections
-  from slotlifter_jax import checkpoints as ckpt_lib
-  from slotlifter_jax import evaluate
   from slotlifter_jax import provenance
   from slotlifter_jax.rendering import views as views_lib
 
-  saved = ckpt_lib.load_saved_config(args.workdir)
-  if saved is None:
-    raise SystemExit(f"{ckpt_lib.config_path(args.workdir)}: not found; --workdir must be a "
-                     f"training run directory")
-  run = evaluate.load_run(ml_collections.ConfigDict(saved), args.workdir, split=args.split,
-                          checkpoint=args.checkpoint, max_scenes=args.scenes, params=args.params)
+  run = diagnose_slots.load_run(args, params=args.params)
   renderer = views_lib.SceneRenderer(run.model, run.config)
   mapping = run.params["allocation"]["map_key"]
   pairs, objects = [], []
