@@ -91,8 +91,10 @@ def _val_record(name: str) -> dict:
   return d
 
 
-def _host(record: dict) -> str:
-  return tc.described_host(record.get("provenance") or {}) or "a host not recorded"
+def _hosts(records) -> str:
+  """The distinct hosts the records were computed on, in order, joined by '; '."""
+  return "; ".join(dict.fromkeys(tc.described_host(r.get("provenance") or {})
+                                 or "a host not recorded" for r in records))
 
 
 def room_val100() -> list[str]:
@@ -100,7 +102,7 @@ def room_val100() -> list[str]:
   rows = ["| run | checkpoint | FG-ARI | FG-ARI, ≥ 2 objects | NV-ARI | novel PSNR (dB) | "
           "FG-ARI ≥ 2 objects by count: 2 / 3 / 4 | slots in use by count: 1 / 2 / 3 / 4 |",
           "|---|---|---|---|---|---|---|---|"]
-  names, hosts = [], []
+  names, records = [], []
   for label, run in ROOM_VAL100:
     name, scenes = f"{run}_val100_metrics.json", f"{run}_val100_per_scene.csv"
     d = _val_record(name)
@@ -113,13 +115,13 @@ def room_val100() -> list[str]:
                 + " / ".join(f"{fg[n][0]:.2f}" for n in sorted(fg)) + " | "
                 + " / ".join(f"{slots[n][0]:.1f}" for n in sorted(slots)) + " |")
     names += [name, scenes]
-    hosts += [h for h in [_host(d)] if h not in hosts]
+    records.append(d)
   return rows + ["", "Split: validation, 100 scenes (the split every room choice reads; the "
                  "held-out test split is not read until a recipe splits the set). ± : the standard "
                  "error over the scenes. Checkpoint: the best by validation, `average` = the moving "
                  "average of the parameters. FG-ARI on a one-object view is 1 or 0 (docs/method.md "
                  "§4), so the columns after NV-ARI split the scenes by their object count. "
-                 f"Evaluated on {'; '.join(hosts)}.", tc.files_line(names)]
+                 f"Evaluated on {_hosts(records)}.", tc.files_line(names)]
 
 
 def _val_rows(name: str) -> dict[int, dict]:
@@ -186,7 +188,7 @@ def room_slot_routing() -> list[str]:
           "merged by the rendering | chairs rendered in their attention slot | chairs' pixels "
           "per slot 0–4, attention | the same, rendering | background in slot 0, attention |",
           "|---|---|---|---|---|---|---|---|"]
-  names, hosts = [], []
+  names, records = [], []
   for label, run in ROOM_SLOT_ROUTING:
     name = f"{run}.json"
     d = _val_record(name)
@@ -200,14 +202,14 @@ def room_slot_routing() -> list[str]:
         + " / ".join(f"{x:.2f}" for x in att[1]) + " | "
         + " / ".join(f"{x:.2f}" for x in ren[1]) + f" | {att[0][0]:.2f} |")
     names.append(name)
-    hosts += [h for h in [_host(d)] if h not in hosts]
+    records.append(d)
   return rows + ["", "Split: validation, the first 100 scenes; each run's last checkpoint, its "
                  "trained parameters (the runs stopped at different steps: compare the slots' "
                  "roles, not the levels). A pair: two chairs of one source view, each with ≥ 20 "
                  "pixels; a stage parts it when the chairs' majority slots differ. Slots are "
                  "indexed by slot attention's learned queries (docs/method.md §1.2), so an index "
                  "keeps its role from scene to scene. Computed on "
-                 f"{'; '.join(hosts)}.", tc.files_line(names)]
+                 f"{_hosts(records)}.", tc.files_line(names)]
 
 
 TABLES = {"room_val100": room_val100, "room_curves": room_curves,

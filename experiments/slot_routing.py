@@ -84,24 +84,25 @@ def summarise(pairs: list[dict], objects: list[dict]) -> dict:
     return int(sum(1 for p in pairs if pred(p)))
   parted = [p for p in pairs if p["attention_parts"]]
   merged = [p for p in parted if not p["rendering_parts"]]
-  cos = lambda rows, key: float(np.mean([r[key] for r in rows])) if rows else float("nan")
+  both = [p for p in parted if p["rendering_parts"]]
+  mean_of = lambda rows, key: float(np.mean([r[key] for r in rows])) if rows else float("nan")
   return dict(
       pairs=len(pairs),
       attention_parts=len(parted),
       rendering_parts=count(lambda p: p["rendering_parts"]),
-      both_part=count(lambda p: p["attention_parts"] and p["rendering_parts"]),
+      both_part=len(both),
       attention_parts_rendering_merges=len(merged),
       attention_merges_rendering_parts=count(
           lambda p: not p["attention_parts"] and p["rendering_parts"]),
       merged_into_one_of_theirs=int(sum(p["merged_into"] == "one of theirs" for p in merged)),
-      merged_pairs_slot_cosine=cos(merged, "slot_cosine"),
-      merged_pairs_key_cosine=cos(merged, "key_cosine"),
-      parted_pairs_slot_cosine=cos([p for p in parted if p["rendering_parts"]], "slot_cosine"),
-      parted_pairs_key_cosine=cos([p for p in parted if p["rendering_parts"]], "key_cosine"),
+      merged_pairs_slot_cosine=mean_of(merged, "slot_cosine"),
+      merged_pairs_key_cosine=mean_of(merged, "key_cosine"),
+      parted_pairs_slot_cosine=mean_of(both, "slot_cosine"),
+      parted_pairs_key_cosine=mean_of(both, "key_cosine"),
       objects=len(objects),
       rendered_slot_is_attention_slot=int(sum(o["rendered"] == o["attention"] for o in objects)),
-      attention_purity=cos(objects, "attention_share"),
-      rendered_purity=cos(objects, "rendered_share"),
+      attention_purity=mean_of(objects, "attention_share"),
+      rendered_purity=mean_of(objects, "rendered_share"),
   )
 
 
@@ -170,15 +171,14 @@ def main(argv=None) -> None:
     for obj in sorted(att):
       objects.append(dict(scene=n, object=obj, attention=att[obj][0], attention_share=att[obj][1],
                           rendered=ren[obj][0], rendered_share=ren[obj][1]))
+    colour = {obj: scene.images[source][mask == obj].mean(0) for obj in att}  # mean RGB
     for row in pair_outcomes(att, ren):
       sa, sb = row["attention_slots"]
       oa, ob = row["objects"]
-      image = scene.images[source]
       row.update(scene=n, slot_cosine=_cosine(slots[sa], slots[sb]),
                  key_cosine=_cosine(keys[sa], keys[sb]),
                  key_norms=(float(np.linalg.norm(keys[sa])), float(np.linalg.norm(keys[sb]))),
-                 colour_distance=float(np.linalg.norm(image[mask == oa].mean(0)
-                                                      - image[mask == ob].mean(0))))
+                 colour_distance=float(np.linalg.norm(colour[oa] - colour[ob])))
       pairs.append(row)
   summary = summarise(pairs, objects)
   print(f"{args.workdir}: step {run.step} ({run.parameters} parameters), {len(run.scenes)} "
