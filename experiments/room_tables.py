@@ -52,6 +52,12 @@ ROOM_CURVES = (
     ("chairs, 128 px, seed 3, contrast_mix 0.8", "room_probe_chairs_128px_mix08_seed3_parallax"),
     ("chairs, 128 px, seed 1, slot noise to step 50 000",
      "room_probe_chairs_128px_noise50k_seed1_parallax"),
+    ("chairs, 128 px, seed 5, slot noise to step 50 000",
+     "room_probe_chairs_128px_noise50k_seed5_parallax"),
+    ("chairs, 128 px, seed 5, slot noise to step 50 000, off from step 16 000",
+     "room_probe_chairs_128px_noise50k_off16k_seed5_parallax"),
+    ("chairs, 128 px, seed 6, slot noise to step 50 000",
+     "room_probe_chairs_128px_noise50k_seed6_parallax"),
     ("4 chairs in every scene, 128 px, seed 1", "room_probe_chairs4_128px_seed1_parallax"),
     ("4 chairs in every scene, 128 px, seed 3", "room_probe_chairs4_128px_seed3_parallax"),
 )
@@ -179,6 +185,11 @@ ROOM_SLOT_ROUTING = (
     ("seed 3", "room_slot_routing_chairs_128px_seed3_step8208"),
     ("seed 4", "room_slot_routing_chairs_128px_seed4_step6141"),
     ("seed 1, slot noise to step 50 000", "room_slot_routing_chairs_128px_noise50k_seed1_step16308"),
+    ("seed 5, slot noise to step 50 000", "room_slot_routing_chairs_128px_noise50k_seed5_step16000"),
+    ("seed 5, slot noise to step 50 000", "room_slot_routing_chairs_128px_noise50k_seed5_step27132"),
+    ("seed 5, slot noise to step 50 000, off from step 16 000",
+     "room_slot_routing_chairs_128px_noise50k_off16k_seed5_step24473"),
+    ("seed 6, slot noise to step 50 000", "room_slot_routing_chairs_128px_noise50k_seed6_step16000"),
 )
 
 
@@ -203,8 +214,8 @@ def room_slot_routing() -> list[str]:
         + " / ".join(f"{x:.2f}" for x in ren[1]) + f" | {att[0][0]:.2f} |")
     names.append(name)
     records.append(d)
-  return rows + ["", "Split: validation, the first 100 scenes; each run's last checkpoint, its "
-                 "trained parameters (the runs stopped at different steps: compare the slots' "
+  return rows + ["", "Split: validation, the first 100 scenes; each run's checkpoint at the step "
+                 "named, its trained parameters (the runs are at different steps: compare the slots' "
                  "roles, not the levels). A pair: two chairs of one source view, each with ≥ 20 "
                  "pixels; a stage parts it when the chairs' majority slots differ. Slots are "
                  "indexed by slot attention's learned queries (docs/method.md §1.2), so an index "
