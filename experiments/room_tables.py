@@ -58,6 +58,10 @@ ROOM_CURVES = (
      "room_probe_chairs_128px_noise50k_off16k_seed5_parallax"),
     ("chairs, 128 px, seed 6, slot noise to step 50 000",
      "room_probe_chairs_128px_noise50k_seed6_parallax"),
+    ("chairs, 128 px, seed 6, slot noise to step 50 000, no locality constraint",
+     "room_probe_chairs_128px_noise50k_nolocality_seed6_parallax"),
+    ("chairs, 128 px, seed 6, slot noise to step 50 000, 4 decoder blocks",
+     "room_probe_chairs_128px_noise50k_blocks4_seed6_parallax"),
     ("4 chairs in every scene, 128 px, seed 1", "room_probe_chairs4_128px_seed1_parallax"),
     ("4 chairs in every scene, 128 px, seed 3", "room_probe_chairs4_128px_seed3_parallax"),
 )
@@ -190,36 +194,60 @@ ROOM_SLOT_ROUTING = (
     ("seed 5, slot noise to step 50 000, off from step 16 000",
      "room_slot_routing_chairs_128px_noise50k_off16k_seed5_step24473"),
     ("seed 6, slot noise to step 50 000", "room_slot_routing_chairs_128px_noise50k_seed6_step16000"),
+    ("seed 6, slot noise to step 50 000, no locality constraint",
+     "room_slot_routing_chairs_128px_noise50k_nolocality_seed6_step12000"),
+    ("seed 6, slot noise to step 50 000, 4 decoder blocks",
+     "room_slot_routing_chairs_128px_noise50k_blocks4_seed6_step16000"),
 )
+
+
+def _dropped_cell(run: str, kept: dict) -> tuple[str, list[str]]:
+  """The cell of `run`'s checkpoint rendered without lifted features and the file it read, if
+  computed; that file must hold the same checkpoint on the same scenes."""
+  name = f"{run}_dropped.json"
+  if not os.path.exists(os.path.join(tc.RESULTS, name)):
+    return "–", []
+  d = _val_record(name)
+  if d.get("lifted") != "dropped" or d["step"] != kept["step"] or d["scenes"] != kept["scenes"]:
+    raise tc.TableError(f"experiments/results/{name}: not {run}.json's checkpoint and scenes "
+                        f"rendered with --lifted=dropped")
+  s = d["summary"]
+  cell = f"{s['rendering_parts']} of {s['pairs']}, {s['slot_roles']['rendering'][1][0]:.2f}"
+  return cell, [name]
 
 
 def room_slot_routing() -> list[str]:
   """docs/rooms.md: where each stage puts the chairs of the source view, slot by slot."""
   rows = ["| run | step | pairs parted by attention / rendering / both | parted by attention, "
           "merged by the rendering | chairs rendered in their attention slot | chairs' pixels "
-          "per slot 0–4, attention | the same, rendering | background in slot 0, attention |",
-          "|---|---|---|---|---|---|---|---|"]
+          "per slot 0–4, attention | the same, rendering | background in slot 0, attention | "
+          "rendered without lifted features: pairs parted, chairs' pixels in slot 0 |",
+          "|---|---|---|---|---|---|---|---|---|"]
   names, records = [], []
   for label, run in ROOM_SLOT_ROUTING:
     name = f"{run}.json"
     d = _val_record(name)
     s = d["summary"]
     att, ren = s["slot_roles"]["attention"], s["slot_roles"]["rendering"]  # [background, objects]
+    dropped, dropped_names = _dropped_cell(run, d)
     rows.append(
         f"| {label} | {d['step']} | {s['attention_parts']} / {s['rendering_parts']} / "
         f"{s['both_part']} of {s['pairs']} | {s['attention_parts_rendering_merges']} "
         f"({s['merged_into_one_of_theirs']} into one of theirs) | "
         f"{s['rendered_slot_is_attention_slot']} of {s['objects']} | "
         + " / ".join(f"{x:.2f}" for x in att[1]) + " | "
-        + " / ".join(f"{x:.2f}" for x in ren[1]) + f" | {att[0][0]:.2f} |")
-    names.append(name)
+        + " / ".join(f"{x:.2f}" for x in ren[1]) + f" | {att[0][0]:.2f} | "
+        + dropped + " |")
+    names += [name] + dropped_names
     records.append(d)
   return rows + ["", "Split: validation, the first 100 scenes; each run's checkpoint at the step "
                  "named, its trained parameters (the runs are at different steps: compare the slots' "
                  "roles, not the levels). A pair: two chairs of one source view, each with ≥ 20 "
                  "pixels; a stage parts it when the chairs' majority slots differ. Slots are "
                  "indexed by slot attention's learned queries (docs/method.md §1.2), so an index "
-                 "keeps its role from scene to scene. Computed on "
+                 "keeps its role from scene to scene. The last column renders the same view with "
+                 "every ray's lifted features zeroed, as training renders its masked rays "
+                 "(`--lifted=dropped`; –: not computed). Computed on "
                  f"{_hosts(records)}.", tc.files_line(names)]
 
 

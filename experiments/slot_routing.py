@@ -1,7 +1,7 @@
 """Does the rendering keep the objects apart that slot attention parted? Object by object.
 
   python experiments/slot_routing.py --workdir=DIR [--split=val --scenes=20 --checkpoint=best
-      --params=average --out=experiments/results/NAME.json]
+      --params=average --lifted=kept --out=experiments/results/NAME.json]
 
 The rendered split has two stages: slot attention groups the source view's features into K slots,
 then the point-slot mapping W (docs/method.md §1.4) gives each 3D point to one of those slots.
@@ -20,6 +20,11 @@ For those pairs it says where the merged pair went: to the slot that attention g
 (the other object's slot lost its points) or to a slot attention gave neither. It also reports the
 cosine of the two objects' slots and of their mapping keys k(S') (the vectors the points' queries
 are compared with), so one can see whether the mapping can tell the slots apart at all.
+
+--lifted=dropped renders every ray as training renders a masked one (docs/method.md §1.3): its
+lifted features zeroed, so what it gives a point comes from the slots and the point's position
+alone. The rendered slot is then what the slots alone say about where each object is; where it
+matches the default (`kept`), the lifted features play no part in the routing.
 
 Objects with fewer than --min_pixels pixels in the source view are left out (a chair leg at the
 image border carries no majority). Nothing here reads the test split unless --split says so.
@@ -139,6 +144,8 @@ def main(argv=None) -> None:
   p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
   diagnose_slots.add_run_arguments(p)
   p.add_argument("--params", default="average", help="average | trained")
+  p.add_argument("--lifted", choices=("kept", "dropped"), default="kept",
+                 help="dropped: render without the lifted features (module docstring)")
   p.add_argument("--min_pixels", type=int, default=20)
   p.add_argument("--out", default="", help="write the summary and the pairs to this JSON file")
   args = p.parse_args(argv)
@@ -147,7 +154,7 @@ def main(argv=None) -> None:
   from slotlifter_jax.rendering import views as views_lib
 
   run = diagnose_slots.load_run(args, params=args.params)
-  renderer = views_lib.SceneRenderer(run.model, run.config)
+  renderer = views_lib.SceneRenderer(run.model, run.config, drop_lifted=args.lifted == "dropped")
   mapping = run.params["allocation"]["map_key"]
   pairs, objects = [], []
   k = int(run.config.model.num_slots)
@@ -182,7 +189,8 @@ def main(argv=None) -> None:
       pairs.append(row)
   summary = summarise(pairs, objects)
   print(f"{args.workdir}: step {run.step} ({run.parameters} parameters), {len(run.scenes)} "
-        f"{args.split} scenes, {summary['objects']} objects, {summary['pairs']} pairs")
+        f"{args.split} scenes, {summary['objects']} objects, {summary['pairs']} pairs, lifted "
+        f"features {args.lifted}")
   print(f"  pairs parted by slot attention {summary['attention_parts']}, by the rendering "
         f"{summary['rendering_parts']}, by both {summary['both_part']}")
   print(f"  parted by attention, merged by the rendering: "
@@ -207,7 +215,7 @@ def main(argv=None) -> None:
     record = dict(summary=summary, pairs=pairs, objects=objects, workdir=args.workdir,
                   split=args.split, scenes=len(run.scenes), step=int(run.step),
                   parameters=run.parameters, checkpoint=args.checkpoint,
-                  min_pixels=args.min_pixels,
+                  min_pixels=args.min_pixels, lifted=args.lifted,
                   provenance=provenance.collect(run.config))
     tmp = args.out + ".tmp"
     with open(tmp, "w") as f:

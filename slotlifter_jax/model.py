@@ -354,11 +354,14 @@ class SlotLifter(nn.Module):
   def render_rays(self, encoded: Encoded, *, source_images: jax.Array,
                   source_cam_to_world: jax.Array, source_intrinsics: jax.Array,
                   ray_origins: jax.Array, ray_directions: jax.Array, keep_ratio=1.0,
-                  locality=False, train: bool) -> RenderOutput:
+                  locality=False, train: bool, drop_lifted: bool = False) -> RenderOutput:
     """Renders rays [B, R, 3] (unit directions) of the scenes in `encoded`.
 
     keep_ratio: (traced) probability that a ray keeps its lifted features; used only when `train`.
     locality: (traced) bool switching the locality constraint (docs/method.md §1.4).
+    drop_lifted: (static) render every ray as training renders a masked one (§1.3), its lifted
+      features zeroed, so a point sees the views only through the slots and its own position: a
+      diagnostic of what the slots alone carry. Evaluation keeps them.
     """
     b, r = ray_origins.shape[:2]
     sources = dict(source_images=source_images, source_cam_to_world=source_cam_to_world,
@@ -368,8 +371,8 @@ class SlotLifter(nn.Module):
     z = geometry.stratified_depths(near=near, far=far, num_samples=self.num_samples,
                                    batch_shape=(b, r),
                                    key=self.make_rng("sample") if train else None)  # [B, R, S]
-    keep = None
-    if train:
+    keep = jnp.zeros((b, r), jnp.float32) if drop_lifted else None
+    if train and not drop_lifted:
       keep = lifting.sample_ray_keep(key=self.make_rng("mask"), keep_ratio=keep_ratio,
                                      shape=(b, r),
                                      shared_across_batch=self.mask_shared_across_batch)  # [B, R]

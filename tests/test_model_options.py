@@ -271,3 +271,28 @@ def test_encoder_input_pool_feeds_the_encoder_the_pooled_view_and_lifts_full_siz
   out, out_swapped = run(inputs), run(other)
   np.testing.assert_allclose(out_swapped.encoded.features, out.encoded.features, atol=1e-6)
   assert np.abs(np.asarray(out_swapped.render.coarse.colour - out.render.coarse.colour)).max() > 1e-3
+
+
+def test_drop_lifted_renders_as_the_model_without_lifting():
+  """render_rays(drop_lifted=True) zeroes F_lift, so F_p = E_p: the same render as the model built
+  without feature lifting (which never computes F_lift) on the same parameters."""
+  model, inputs, variables = tm.setup("v2_fine")
+  without = tm.tiny(num_fine_samples=model.num_fine_samples, feature_lifting=False)
+  params = {k: v for k, v in variables["params"].items() if not k.startswith("lift_proj")}
+  assert set(params) < set(variables["params"])  # the lifting Linears are what is left out
+
+  def render(module, variables, drop_lifted):
+    def run(variables):
+      encoded = module.apply(variables, **tm.sources(inputs), train=False, method=module.encode)
+      kw = dict(drop_lifted=True) if drop_lifted else {}
+      return module.apply(variables, encoded, **tm.sources(inputs),
+                          ray_origins=inputs["ray_origins"],
+                          ray_directions=inputs["ray_directions"], train=False,
+                          method=module.render_rays, **kw)
+    return jit(run)(variables)
+
+  dropped = render(model, variables, True)
+  reference = render(without, {"params": params}, False)
+  chex.assert_trees_all_close(dropped, reference, rtol=1e-5, atol=1e-6)
+  kept = render(model, variables, False)
+  assert np.abs(np.asarray(kept.fine.colour - dropped.fine.colour)).max() > 1e-5

@@ -70,14 +70,14 @@ def test_a_missing_file_names_itself(results, monkeypatch):
     room_tables.room_curves()
 
 
-def _write_routing(results, name, *, split="val"):
+def _write_routing(results, name, *, split="val", step=1234, **extra):
   summary = dict(pairs=6, attention_parts=5, rendering_parts=3, both_part=3,
                  attention_parts_rendering_merges=2, merged_into_one_of_theirs=1, objects=7,
                  rendered_slot_is_attention_slot=4,
                  slot_roles=dict(attention=[[0.9, 0.1, 0, 0, 0], [0.1, 0.2, 0.3, 0.4, 0]],
                                  rendering=[[1, 0, 0, 0, 0], [0.5, 0.5, 0, 0, 0]]))
   (results / f"{name}.json").write_text(json.dumps(
-      {"split": split, "step": 1234, "summary": summary,
+      {"split": split, "step": step, "scenes": 100, "summary": summary, **extra,
        "provenance": {"platform": "cpu", "cpu_model": "Test CPU", "cpu_count": 2}}))
 
 
@@ -87,8 +87,24 @@ def test_slot_routing_reads_objects_pixels_and_the_backgrounds_slot_0(results, m
   lines = room_tables.room_slot_routing()
   assert lines[2] == ("| seed 9 | 1234 | 5 / 3 / 3 of 6 | 2 (1 into one of theirs) | 4 of 7 | "
                       "0.10 / 0.20 / 0.30 / 0.40 / 0.00 | 0.50 / 0.50 / 0.00 / 0.00 / 0.00 | "
-                      "0.90 |")
+                      "0.90 | – |")
   assert "a 2-core Test CPU" in lines[4] and "routing.json" in lines[5]
+
+
+def test_slot_routing_adds_the_same_checkpoint_rendered_without_lifted_features(
+    results, monkeypatch):
+  monkeypatch.setattr(room_tables, "ROOM_SLOT_ROUTING", (("seed 9", "routing"),))
+  _write_routing(results, "routing")
+  _write_routing(results, "routing_dropped", lifted="dropped")
+  lines = room_tables.room_slot_routing()
+  # The dropped file's rendering parts 3 of 6 pairs and gives slot 0 half the chairs' pixels.
+  assert lines[2].endswith("| 0.90 | 3 of 6, 0.50 |")
+  assert "routing.json" in lines[5] and "routing_dropped.json" in lines[5]
+  # Another checkpoint, or a file that rendered with the lifted features, is refused by name.
+  for bad in (dict(step=999, lifted="dropped"), dict(lifted="kept")):
+    _write_routing(results, "routing_dropped", **bad)
+    with pytest.raises(table_common.TableError, match="routing_dropped.json: not routing.json"):
+      room_tables.room_slot_routing()
 
 
 def test_slot_routing_refuses_another_split(results, monkeypatch):

@@ -401,6 +401,16 @@ def test_slot_routing_command_on_a_trained_run(smoke_run, tmp_path):
     assert shares.shape == (2, 4) and np.allclose(shares.sum(-1), 1.0)
   assert record["split"] == "test" and record["step"] == 6
   assert record["provenance"]["config"]["model"]["num_slots"] == 4
+  assert record["lifted"] == "kept"
+  # The same objects, rendered with no lifted features: the record says which rendering it read.
+  from experiments import slot_routing
+  dropped = tmp_path / "routing_dropped.json"
+  slot_routing.main([f"--workdir={row['run_dir']}", "--split=test", "--scenes=1",
+                     "--checkpoint=latest", "--min_pixels=1", "--lifted=dropped",
+                     f"--out={dropped}"])
+  other = json.loads(dropped.read_text())
+  assert other["lifted"] == "dropped" and other["summary"]["objects"] == s["objects"]
+  assert other["summary"]["slot_roles"]["attention"] == s["slot_roles"]["attention"]
   # A run folder without config.json: a one-line error naming the file.
   bad = subprocess.run([sys.executable, "experiments/slot_routing.py", f"--workdir={tmp_path}"],
                        cwd=REPO, capture_output=True, text=True, timeout=300)

@@ -96,7 +96,8 @@ def render_cameras(render_chunk, *, cam_to_world, intrinsics, height: int, width
 class SceneRenderer:
   """Renders chosen views of a Scene at full resolution with fixed-size ray chunks."""
 
-  def __init__(self, model, config):
+  def __init__(self, model, config, *, drop_lifted: bool = False):
+    """drop_lifted: render every ray without its lifted features (`SlotLifter.render_rays`)."""
     self.model = model
     self.signed = config.model.colour_range == "signed"
     self.chunk = int(config.render.chunk)
@@ -108,7 +109,7 @@ class SceneRenderer:
     def render_chunk(params, encoded, sources, origins, directions, locality):
       out = model.apply({"params": params}, encoded, **sources, ray_origins=origins,
                         ray_directions=directions, keep_ratio=1.0, locality=locality, train=False,
-                        method=model.render_rays)
+                        drop_lifted=drop_lifted, method=model.render_rays)
       final = out.fine if out.fine is not None else out.coarse
       colour = (final.colour + 1.0) * 0.5 if signed else final.colour
       return colour, final.depth, final.segmentation
@@ -116,7 +117,7 @@ class SceneRenderer:
     # Every validation of a run (and every Validator of one model in a process) renders with the
     # same jitted function, traced once (slotlifter_jax/programs.py).
     self._encode = make_encode(model)
-    self._render_chunk = programs.shared(("render_chunk", model, signed),
+    self._render_chunk = programs.shared(("render_chunk", model, signed, drop_lifted),
                                          lambda: jax.jit(render_chunk))
 
   def sources(self, scene: Scene, source_indices=None) -> dict:
