@@ -371,11 +371,14 @@ class SlotLifter(nn.Module):
     z = geometry.stratified_depths(near=near, far=far, num_samples=self.num_samples,
                                    batch_shape=(b, r),
                                    key=self.make_rng("sample") if train else None)  # [B, R, S]
-    keep = jnp.zeros((b, r), jnp.float32) if drop_lifted else None
-    if train and not drop_lifted:
+    if drop_lifted:
+      keep = jnp.zeros((b, r), jnp.float32)  # every ray masked
+    elif train:
       keep = lifting.sample_ray_keep(key=self.make_rng("mask"), keep_ratio=keep_ratio,
                                      shape=(b, r),
                                      shared_across_batch=self.mask_shared_across_batch)  # [B, R]
+    else:
+      keep = None
     coarse, alloc, colour = self._render_pass(0, encoded, **sources, **rays, z=z, keep=keep,
                                               locality=locality, train=train)
     fine = None

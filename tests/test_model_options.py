@@ -284,11 +284,10 @@ def test_drop_lifted_renders_as_the_model_without_lifting():
   def render(module, variables, drop_lifted):
     def run(variables):
       encoded = module.apply(variables, **tm.sources(inputs), train=False, method=module.encode)
-      kw = dict(drop_lifted=True) if drop_lifted else {}
       return module.apply(variables, encoded, **tm.sources(inputs),
                           ray_origins=inputs["ray_origins"],
                           ray_directions=inputs["ray_directions"], train=False,
-                          method=module.render_rays, **kw)
+                          drop_lifted=drop_lifted, method=module.render_rays)
     return jit(run)(variables)
 
   dropped = render(model, variables, True)
