@@ -62,6 +62,10 @@ ROOM_CURVES = (
      "room_probe_chairs_128px_noise50k_nolocality_seed6_parallax"),
     ("chairs, 128 px, seed 6, slot noise to step 50 000, 4 decoder blocks",
      "room_probe_chairs_128px_noise50k_blocks4_seed6_parallax"),
+    ("chairs, 128 px, seed 6, slot noise to step 50 000, decoder width 64",
+     "room_probe_chairs_128px_noise50k_width64_seed6_parallax"),
+    ("chairs, 128 px, seed 6, slot noise to step 50 000, 32 samples per ray",
+     "room_probe_chairs_128px_noise50k_samples32_seed6_parallax"),
     ("4 chairs in every scene, 128 px, seed 1", "room_probe_chairs4_128px_seed1_parallax"),
     ("4 chairs in every scene, 128 px, seed 3", "room_probe_chairs4_128px_seed3_parallax"),
 )
@@ -198,6 +202,10 @@ ROOM_SLOT_ROUTING = (
      "room_slot_routing_chairs_128px_noise50k_nolocality_seed6_step12000"),
     ("seed 6, slot noise to step 50 000, 4 decoder blocks",
      "room_slot_routing_chairs_128px_noise50k_blocks4_seed6_step16000"),
+    ("seed 6, slot noise to step 50 000, decoder width 64",
+     "room_slot_routing_chairs_128px_noise50k_width64_seed6_step14000"),
+    ("seed 6, slot noise to step 50 000, 32 samples per ray",
+     "room_slot_routing_chairs_128px_noise50k_samples32_seed6_step14000"),
 )
 
 
