@@ -66,6 +66,10 @@ ROOM_CURVES = (
      "room_probe_chairs_128px_noise50k_width64_seed6_parallax"),
     ("chairs, 128 px, seed 6, slot noise to step 50 000, 32 samples per ray",
      "room_probe_chairs_128px_noise50k_samples32_seed6_parallax"),
+    ("chairs, 128 px, seed 1, slot noise to step 50 000, 32 samples per ray",
+     "room_probe_chairs_128px_noise50k_samples32_seed1_parallax"),
+    ("chairs, 128 px, seed 5, slot noise to step 50 000, 32 samples per ray",
+     "room_probe_chairs_128px_noise50k_samples32_seed5_parallax"),
     ("4 chairs in every scene, 128 px, seed 1", "room_probe_chairs4_128px_seed1_parallax"),
     ("4 chairs in every scene, 128 px, seed 3", "room_probe_chairs4_128px_seed3_parallax"),
 )
@@ -206,6 +210,8 @@ ROOM_SLOT_ROUTING = (
      "room_slot_routing_chairs_128px_noise50k_width64_seed6_step14000"),
     ("seed 6, slot noise to step 50 000, 32 samples per ray",
      "room_slot_routing_chairs_128px_noise50k_samples32_seed6_step14000"),
+    ("seed 1, slot noise to step 50 000, 32 samples per ray",
+     "room_slot_routing_chairs_128px_noise50k_samples32_seed1_step16000"),
 )
 
 
