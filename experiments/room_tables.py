@@ -70,6 +70,10 @@ ROOM_CURVES = (
      "room_probe_chairs_128px_noise50k_samples32_seed1_parallax"),
     ("chairs, 128 px, seed 5, slot noise to step 50 000, 32 samples per ray",
      "room_probe_chairs_128px_noise50k_samples32_seed5_parallax"),
+    ("chairs, 128 px, seed 5 on the AMD host, slot noise to step 50 000",
+     "room_probe_chairs_128px_noise50k_seed5_amd_parallax"),
+    ("chairs, 128 px, seed 5 on the AMD host, slot noise and locality constraint to step 50 000",
+     "room_probe_chairs_128px_noise50k_loc50k_seed5_amd_parallax"),
     ("4 chairs in every scene, 128 px, seed 1", "room_probe_chairs4_128px_seed1_parallax"),
     ("4 chairs in every scene, 128 px, seed 3", "room_probe_chairs4_128px_seed3_parallax"),
 )
@@ -183,7 +187,10 @@ def room_curves() -> list[str]:
                  "count) at the size and with the overrides of its row, without the restart "
                  "check (each row one attempt), seed 0 unless named. The logs record "
                  "no machine: every run was trained on a 2-core Intel Xeon with AVX-512 and AMX "
-                 "(experiments/journal/2026-12.md, the sections \"Textured rooms: …\").",
+                 "except the rows that name the AMD host, a 2-core AMD EPYC with AVX-512 and no "
+                 "AMX (experiments/journal/2026-12.md, the sections \"Textured rooms: …\"). The "
+                 "same seed does not retrace its run on another host, so a row's seed names its "
+                 "scenes' order and its initial values, not its outcome.",
                  tc.files_line(names)]
 
 
@@ -212,6 +219,10 @@ ROOM_SLOT_ROUTING = (
      "room_slot_routing_chairs_128px_noise50k_samples32_seed6_step14000"),
     ("seed 1, slot noise to step 50 000, 32 samples per ray",
      "room_slot_routing_chairs_128px_noise50k_samples32_seed1_step16000"),
+    ("seed 5 on the AMD host, slot noise to step 50 000",
+     "room_slot_routing_chairs_128px_noise50k_seed5_amd_step28000"),
+    ("seed 5 on the AMD host, slot noise and locality constraint to step 50 000",
+     "room_slot_routing_chairs_128px_noise50k_loc50k_seed5_amd_step28000"),
 )
 
 
