@@ -60,7 +60,8 @@ def test_curves_keep_the_last_validation_of_a_step_validated_again_after_a_resum
   (results / "run_val_metrics.jsonl").write_text(
       "\n".join([row(4000, 0.1), train, row(8000, 0.4), row(8000, 0.45)]) + "\n")
   line = room_tables.room_curves()[2]
-  assert line == ("| chairs | 0.10 / 0.30 / 0.20 | 0.45 / 0.30 / 0.20 | – | – | – | – | 8000 | "
+  assert line == ("| chairs | 0.10 / 0.30 / 0.20 | 0.45 / 0.30 / 0.20 | – | – | – | – | "
+                  "8000: 0.45 / 0.30 / 0.20 | "
                   "– / 0.05 / – / 0.23 / – |")
 
 
