@@ -171,16 +171,15 @@ def room_curves() -> list[str]:
     by_step = _val_rows(name)
     if not by_step:
       raise tc.TableError(f"experiments/results/{name}: no validation with {', '.join(CURVE_KEYS)}")
-    cells = ["–" if s not in by_step else
-             " / ".join(f"{by_step[s][k]:.2f}" for k in CURVE_KEYS) for s in CURVE_STEPS]
+    cell = lambda step: " / ".join(f"{by_step[step][k]:.2f}" for k in CURVE_KEYS)
+    cells = ["–" if s not in by_step else cell(s) for s in CURVE_STEPS]
     agreement = " / ".join(f"{by_step[s]['mf_attn_agreement']:.2f}"
                            if "mf_attn_agreement" in by_step.get(s, {}) else "–"
                            for s in AGREEMENT_STEPS)
     # The last validation in full: runs stopped between the fixed steps (forks compared after
     # their fork step) differ there and nowhere else in the row.
     last = max(by_step)
-    last_cell = f"{last}: " + " / ".join(f"{by_step[last][k]:.2f}" for k in CURVE_KEYS)
-    rows.append(f"| {label} | " + " | ".join(cells) + f" | {last_cell} | {agreement} |")
+    rows.append(f"| {label} | " + " | ".join(cells) + f" | {last}: {cell(last)} | {agreement} |")
     names.append(name)
   return rows + ["", "Each cell: FG-ARI on scenes of ≥ 2 objects / NV-ARI / slot attention's own "
                  "FG-ARI of the source view, on 20 validation scenes while training (–: the run "
