@@ -27,6 +27,12 @@ ROOM_VAL100 = (
     ("chairs, 64 px", "room_probe_chairs_parallax"),
     ("chairs, 128 px (seed 0)", "room_probe_chairs_128px_parallax"),
     ("chairs, 128 px (seed 5)", "room_probe_chairs_128px_seed5_parallax"),
+    ("chairs, 128 px, slot noise to step 50 000 (seed 5, AMD host)",
+     "room_probe_chairs_128px_noise50k_seed5_amd_parallax"),
+    ("the same, 32 samples per ray from step 40 000",
+     "room_probe_chairs_128px_noise50k_s32from40k_seed5_amd_parallax"),
+    ("the same, rates cooled to 0.1× over steps 42 000–50 000",
+     "room_probe_chairs_128px_noise50k_cool8k_seed5_amd_parallax"),
 )
 
 # (label, run name): RESULTS/<name>_val_metrics.jsonl. Every run is the room recipe
@@ -74,6 +80,10 @@ ROOM_CURVES = (
      "room_probe_chairs_128px_noise50k_seed5_amd_parallax"),
     ("chairs, 128 px, seed 5 on the AMD host, slot noise and locality constraint to step 50 000",
      "room_probe_chairs_128px_noise50k_loc50k_seed5_amd_parallax"),
+    ("chairs, 128 px, seed 5 on the AMD host, slot noise to step 50 000, 32 samples per ray from "
+     "step 40 000", "room_probe_chairs_128px_noise50k_s32from40k_seed5_amd_parallax"),
+    ("chairs, 128 px, seed 5 on the AMD host, slot noise to step 50 000, rates cooled to 0.1× "
+     "over steps 42 000–50 000", "room_probe_chairs_128px_noise50k_cool8k_seed5_amd_parallax"),
     ("4 chairs in every scene, 128 px, seed 1", "room_probe_chairs4_128px_seed1_parallax"),
     ("4 chairs in every scene, 128 px, seed 3", "room_probe_chairs4_128px_seed3_parallax"),
 )
@@ -122,8 +132,9 @@ def _hosts(records) -> str:
 def room_val100() -> list[str]:
   """docs/rooms.md: each room run's best checkpoint on all 100 validation scenes."""
   rows = ["| run | checkpoint | FG-ARI | FG-ARI, ≥ 2 objects | NV-ARI | novel PSNR (dB) | "
+          "PSNR (dB): source / novel, seen / novel, unseen | "
           "FG-ARI ≥ 2 objects by count: 2 / 3 / 4 | slots in use by count: 1 / 2 / 3 / 4 |",
-          "|---|---|---|---|---|---|---|---|"]
+          "|---|---|---|---|---|---|---|---|---|"]
   names, records = [], []
   for label, run in ROOM_VAL100:
     name, scenes = f"{run}_val100_metrics.json", f"{run}_val100_per_scene.csv"
@@ -134,6 +145,8 @@ def room_val100() -> list[str]:
     slots = _by_count(scenes, "active_slots")
     rows.append(f"| {label} | step {d['checkpoint']['step']}, {d['parameters']} | {cell('fg_ari')} | "
                 f"{cell('fg_ari_multi')} | {cell('nv_ari')} | {cell('psnr_novel', '{:.2f}')} | "
+                + " / ".join(f"{m[k]['mean']:.1f}" for k in
+                             ("psnr_source", "psnr_novel_seen", "psnr_novel_unseen")) + " | "
                 + " / ".join(f"{fg[n][0]:.2f}" for n in sorted(fg)) + " | "
                 + " / ".join(f"{slots[n][0]:.1f}" for n in sorted(slots)) + " |")
     names += [name, scenes]
@@ -141,7 +154,8 @@ def room_val100() -> list[str]:
   return rows + ["", "Split: validation, 100 scenes (the split every room choice reads; the "
                  "held-out test split is not read until a recipe splits the set). ± : the standard "
                  "error over the scenes. Checkpoint: the best by validation, `average` = the moving "
-                 "average of the parameters. FG-ARI on a one-object view is 1 or 0 (docs/method.md "
+                 "average of the parameters. Seen / unseen: the novel views' pixels whose surface the source "
+                 "view sees / does not see (by the true depth maps). FG-ARI on a one-object view is 1 or 0 (docs/method.md "
                  "§4), so the columns after NV-ARI split the scenes by their object count. "
                  f"Evaluated on {_hosts(records)}.", tc.files_line(names)]
 

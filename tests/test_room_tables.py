@@ -22,7 +22,8 @@ def results(tmp_path, monkeypatch):
 
 def _write_eval(results, run, *, split="val"):
   metrics = {k: {"mean": v, "stderr": 0.01} for k, v in
-             dict(fg_ari=0.5, fg_ari_multi=0.7, nv_ari=0.6, psnr_novel=18.0).items()}
+             dict(fg_ari=0.5, fg_ari_multi=0.7, nv_ari=0.6, psnr_novel=18.0, psnr_source=24.04,
+                  psnr_novel_seen=19.26, psnr_novel_unseen=17.14).items()}
   (results / f"{run}_val100_metrics.json").write_text(json.dumps(
       {"split": split, "checkpoint": {"step": 42000}, "parameters": "average", "metrics": metrics,
        "provenance": {"platform": "cpu", "cpu_model": "Test CPU", "cpu_count": 2}}))
@@ -40,7 +41,7 @@ def test_val100_splits_the_scenes_by_their_object_count(results, monkeypatch):
   # FG-ARI ≥ 2 by count: (0.5 + 0.9) / 2 = 0.70 for two objects, 0.60 for three; one-object
   # scenes have none. Slots in use: 2.5, 3.5, 5.0.
   assert row.startswith("| chairs | step 42000, average | 0.500 ± 0.010 | 0.700 ± 0.010 |"), row
-  assert "| 0.70 / 0.60 | 2.5 / 3.5 / 5.0 |" in row, row
+  assert "| 18.00 ± 0.01 | 24.0 / 19.3 / 17.1 | 0.70 / 0.60 | 2.5 / 3.5 / 5.0 |" in row, row
   assert "a 2-core Test CPU" in lines[4]
 
 
