@@ -84,6 +84,9 @@ ROOM_CURVES = (
      "step 40 000", "room_probe_chairs_128px_noise50k_s32from40k_seed5_amd_parallax"),
     ("chairs, 128 px, seed 5 on the AMD host, slot noise to step 50 000, rates cooled to 0.1× "
      "over steps 42 000–50 000", "room_probe_chairs_128px_noise50k_cool8k_seed5_amd_parallax"),
+    ("chairs, 128 px, seed 5 on the AMD host, slot noise to step 50 000, 256 rays per scene from "
+     "step 28 000 (forked from the run with the locality constraint to step 50 000)",
+     "room_probe_chairs_128px_noise50k_rays256from28k_seed5_amd_parallax"),
     ("4 chairs in every scene, 128 px, seed 1", "room_probe_chairs4_128px_seed1_parallax"),
     ("4 chairs in every scene, 128 px, seed 3", "room_probe_chairs4_128px_seed3_parallax"),
 )
