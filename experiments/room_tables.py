@@ -157,9 +157,9 @@ def room_val100() -> list[str]:
   return rows + ["", "Split: validation, 100 scenes (the split every room choice reads; the "
                  "held-out test split is not read until a recipe splits the set). ± : the standard "
                  "error over the scenes. Checkpoint: the best by validation, `average` = the moving "
-                 "average of the parameters. Seen / unseen: the novel views' pixels whose surface the source "
-                 "view sees / does not see (by the true depth maps). FG-ARI on a one-object view is 1 or 0 (docs/method.md "
-                 "§4), so the columns after NV-ARI split the scenes by their object count. "
+                 "average of the parameters. Seen / unseen: the novel views' pixels whose surface "
+                 "the source view sees / does not see (by the true depth maps). FG-ARI on a "
+                 "one-object view is 1 or 0 (docs/method.md §4), so the columns after NV-ARI split the scenes by their object count. "
                  f"Evaluated on {_hosts(records)}.", tc.files_line(names)]
 
 
