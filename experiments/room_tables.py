@@ -132,6 +132,16 @@ def _hosts(records) -> str:
                                  or "a host not recorded" for r in records))
 
 
+def _metrics(record: dict, name: str, keys) -> dict:
+  """The record's metrics, refused in one line when one of `keys` is missing (an evaluation
+  written before the region split, or of a set without depth maps)."""
+  m = record.get("metrics") or {}
+  missing = [k for k in keys if k not in m]
+  if missing:
+    raise tc.TableError(f"experiments/results/{name}: no {', '.join(missing)} in its metrics")
+  return m
+
+
 def room_val100() -> list[str]:
   """docs/rooms.md: each room run's best checkpoint on all 100 validation scenes."""
   rows = ["| run | checkpoint | FG-ARI | FG-ARI, ≥ 2 objects | NV-ARI | novel PSNR (dB) | "
@@ -142,7 +152,8 @@ def room_val100() -> list[str]:
   for label, run in ROOM_VAL100:
     name, scenes = f"{run}_val100_metrics.json", f"{run}_val100_per_scene.csv"
     d = _val_record(name)
-    m = d["metrics"]
+    m = _metrics(d, name, ("fg_ari", "fg_ari_multi", "nv_ari", "psnr_novel", "psnr_source",
+                           "psnr_novel_seen", "psnr_novel_unseen"))
     cell = lambda k, f="{:.3f}": f"{f.format(m[k]['mean'])} ± {f.format(m[k]['stderr'])}"
     fg = _by_count(scenes, "fg_ari_multi")
     slots = _by_count(scenes, "active_slots")
@@ -159,7 +170,8 @@ def room_val100() -> list[str]:
                  "error over the scenes. Checkpoint: the best by validation, `average` = the moving "
                  "average of the parameters. Seen / unseen: the novel views' pixels whose surface "
                  "the source view sees / does not see (by the true depth maps). FG-ARI on a "
-                 "one-object view is 1 or 0 (docs/method.md §4), so the columns after NV-ARI split the scenes by their object count. "
+                 "one-object view is 1 or 0 (docs/method.md §4), so the columns after NV-ARI "
+                 "split the scenes by their object count. "
                  f"Evaluated on {_hosts(records)}.", tc.files_line(names)]
 
 

@@ -114,3 +114,15 @@ def test_slot_routing_refuses_another_split(results, monkeypatch):
   _write_routing(results, "routing", split="test")
   with pytest.raises(table_common.TableError, match="routing.json: split 'test'"):
     room_tables.room_slot_routing()
+
+
+def test_val100_refuses_an_evaluation_without_the_psnr_split(results, monkeypatch):
+  monkeypatch.setattr(room_tables, "ROOM_VAL100", (("chairs", "run"),))
+  _write_eval(results, "run")
+  path = results / "run_val100_metrics.json"
+  record = json.loads(path.read_text())
+  del record["metrics"]["psnr_novel_seen"]
+  path.write_text(json.dumps(record))
+  with pytest.raises(table_common.TableError,
+                     match="run_val100_metrics.json: no psnr_novel_seen in its metrics"):
+    room_tables.room_val100()
