@@ -7,6 +7,8 @@ size; a view with fewer rays than a chunk is one chunk of exactly its rays.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import flax.struct
 import jax
 import jax.numpy as jnp
@@ -28,6 +30,8 @@ class RenderedViews:
   slot_attn: np.ndarray  # [K, V·h·w]
   # [V, H, W] each source pixel's slot under the slot attention alone (metrics.attention_labels)
   source_labels: np.ndarray
+  # [n, H, W] Σ_i w_i along each ray (docs/method.md §1.5); None where a renderer does not keep it
+  opacity: Optional[np.ndarray] = None
 
 
 def source_attention_labels(encoded, image_hw: tuple[int, int]) -> np.ndarray:
@@ -112,7 +116,7 @@ class SceneRenderer:
                         drop_lifted=drop_lifted, method=model.render_rays)
       final = out.fine if out.fine is not None else out.coarse
       colour = (final.colour + 1.0) * 0.5 if signed else final.colour
-      return colour, final.depth, final.segmentation
+      return colour, final.depth, final.segmentation, final.opacity
 
     # Every validation of a run (and every Validator of one model in a process) renders with the
     # same jitted function, traced once (slotlifter_jax/programs.py).
@@ -131,7 +135,7 @@ class SceneRenderer:
     encoded = self._encode(params, sources)
     height, width = scene.image_size
     views = list(view_indices)
-    colour, depth, seg = render_cameras(
+    colour, depth, seg, opacity = render_cameras(
         lambda o, d: self._render_chunk(params, encoded, sources, o, d, jnp.asarray(locality)),
         cam_to_world=scene.cam_to_world[views], intrinsics=scene.intrinsics[views],
         height=height, width=width, chunk=self.chunk, supersample=self.supersample)
@@ -141,4 +145,5 @@ class SceneRenderer:
     return RenderedViews(colour=colours, depth=depths, segmentation=segs,
                          slots=np.asarray(encoded.slots[0]),
                          slot_attn=np.asarray(encoded.slot_attn[0]),
-                         source_labels=source_attention_labels(encoded, (height, width)))
+                         source_labels=source_attention_labels(encoded, (height, width)),
+                         opacity=opacity.reshape(n, height, width))
