@@ -8,7 +8,9 @@ Written and checked by experiments/tables.py with every other table (`--print=ro
 - room_curves: the validation logs the runs wrote while training (`room_probe_*_val_metrics.jsonl`,
   20 scenes each), at fixed steps;
 - room_slot_routing: each chair followed through slot attention and the rendering
-  (`room_slot_routing_*.json`, written by experiments/slot_routing.py).
+  (`room_slot_routing_*.json`, written by experiments/slot_routing.py);
+- room_depth_placement: where the novel views put what the source view sees, against the true
+  depth (`room_depth_placement_*.json`, written by experiments/depth_placement.py).
 """
 
 from __future__ import annotations
@@ -87,6 +89,11 @@ ROOM_CURVES = (
     ("chairs, 128 px, seed 5 on the AMD host, slot noise to step 50 000, 256 rays per scene from "
      "step 28 000 (forked from the run with the locality constraint to step 50 000)",
      "room_probe_chairs_128px_noise50k_rays256from28k_seed5_amd_parallax"),
+    ("chairs, 128 px, seed 5 on the AMD host, slot noise to step 50 000, no masking floor from "
+     "step 28 000 (forked from the run with the locality constraint to step 50 000)",
+     "room_probe_chairs_128px_noise50k_nomaskfrom28k_seed5_amd_parallax"),
+    ("chairs, 128 px, seed 5 on the AMD host, slot noise to step 50 000, s_σ starting at 0 (the "
+     "paper's value)", "room_probe_chairs_128px_noise50k_dens0_seed5_amd_parallax"),
     ("4 chairs in every scene, 128 px, seed 1", "room_probe_chairs4_128px_seed1_parallax"),
     ("4 chairs in every scene, 128 px, seed 3", "room_probe_chairs4_128px_seed3_parallax"),
 )
@@ -309,5 +316,71 @@ def room_slot_routing() -> list[str]:
                  f"{_hosts(records)}.", tc.files_line(names)]
 
 
+# (label, file): RESULTS/<file>.json from `python experiments/depth_placement.py --workdir=DIR
+# --scenes=100 --out=...` (the run's best checkpoint, moving average).
+ROOM_DEPTH_PLACEMENT = (
+    ("chairs, 128 px, slot noise to step 50 000 (seed 5, AMD host)",
+     "room_depth_placement_chairs_128px_noise50k_seed5_amd_step50000"),
+    ("the same run", "room_depth_placement_chairs_128px_noise50k_seed5_amd_step4000"),
+    ("the same run to step 20 000, then the locality constraint to step 50 000",
+     "room_depth_placement_chairs_128px_noise50k_loc50k_seed5_amd_step28000"),
+    ("the same, s_σ starting at 0 (the paper's value)",
+     "room_depth_placement_chairs_128px_noise50k_dens0_seed5_amd_step4000"),
+    ("the same, s_σ starting at 0", "room_depth_placement_chairs_128px_noise50k_dens0_seed5_amd_step20000"),
+    ("the run to step 28 000 with the locality constraint, then without the masking floor",
+     "room_depth_placement_chairs_128px_noise50k_nomaskfrom28k_seed5_amd_step32000"),
+)
+
+
+def room_depth_placement() -> list[str]:
+  """docs/rooms.md: how opaque the rendering is and where the novel views put what the source view
+  sees, against the true depth."""
+  rows = ["| run | checkpoint | s_σ | opacity, source view: background / chairs | depth bias, source view: "
+          "background / chairs | opacity, novel views' seen pixels: background / chairs | "
+          "displacement in the source view (px): background / chairs | PSNR (dB) of the seen "
+          "pixels: background / chairs | NV-ARI: seen / unseen pixels | NV-ARI of the seen "
+          "pixels, the source view's split carried by the true depth |",
+          "|---|---|---|---|---|---|---|---|---|---|"]
+  names, records = [], []
+  for label, file in ROOM_DEPTH_PLACEMENT:
+    name = f"{file}.json"
+    d = _val_record(name)
+    m = d.get("means") or {}
+    keys = [f"{k}_{r}" for k in ("opacity_source", "depth_bias_source") for r in ("bg", "fg")]
+    keys += [f"{k}_{r}" for k in ("opacity", "displacement_px", "psnr")
+             for r in ("seen_bg", "seen_fg")]
+    keys += ["nv_ari_seen", "nv_ari_unseen", "nv_ari_seen_transported"]
+    missing = [k for k in keys if k not in m]
+    if missing:
+      raise tc.TableError(f"experiments/results/{name}: no {', '.join(missing)} in its means")
+    if "log_density_scale" not in d:
+      raise tc.TableError(f"experiments/results/{name}: no log_density_scale")
+    pair = lambda key, fmt, bg="_seen_bg", fg="_seen_fg": f"{m[key + bg]:{fmt}} / {m[key + fg]:{fmt}}"
+    rows.append(f"| {label} | step {d['step']}, {d['parameters']}, {d['scenes']} scenes | "
+                f"{d['log_density_scale']:.2f} | "
+                f"{pair('opacity_source', '.2f', '_bg', '_fg')} | "
+                f"{pair('depth_bias_source', '+.2f', '_bg', '_fg')} | {pair('opacity', '.2f')} | "
+                f"{pair('displacement_px', '.1f')} | {pair('psnr', '.1f')} | "
+                f"{m['nv_ari_seen']:.3f} / {m['nv_ari_unseen']:.3f} | "
+                f"{m['nv_ari_seen_transported']:.3f} |")
+    names.append(name)
+    records.append(d)
+  return rows + ["", "Split: validation, its first scenes (as many as the row says), every "
+                 "view; the checkpoint named, its moving average of the parameters or its trained "
+                 "ones. s_σ: the learned log scale of the density (docs/method.md §1.4), "
+                 "which the scene recipe starts at −3 and the paper at 0. Opacity: Σ w along a ray (docs/method.md §1.5), the "
+                 "mean over the region's pixels. Depth bias: the median of (z − z_true) / z_true "
+                 "over the region, z the camera depth the model renders (the remainder 1 − Σ w "
+                 "of a ray goes to the far plane); > 0: too deep. Seen: the novel views' pixels "
+                 "whose true surface point the source view sees (slotlifter_jax/regions.py); "
+                 "background / chairs by the true masks. Displacement: the median distance "
+                 "between where the model's and the true surface point project into the source "
+                 "view. Medians and means are a scene's, then averaged over the scenes. The last "
+                 "column gives every seen pixel the source view's rendered label at its true "
+                 "point's projection: what NV-ARI on those pixels would read were the source "
+                 f"view's split placed at the right depth. Computed on {_hosts(records)}.",
+                 tc.files_line(names)]
+
+
 TABLES = {"room_val100": room_val100, "room_curves": room_curves,
-          "room_slot_routing": room_slot_routing}
+          "room_slot_routing": room_slot_routing, "room_depth_placement": room_depth_placement}

@@ -126,3 +126,36 @@ def test_val100_refuses_an_evaluation_without_the_psnr_split(results, monkeypatc
   with pytest.raises(table_common.TableError,
                      match="run_val100_metrics.json: no psnr_novel_seen in its metrics"):
     room_tables.room_val100()
+
+
+def _write_placement(results, name, *, split="val", drop=()):
+  means = dict(opacity_source_bg=0.861, opacity_source_fg=0.674, depth_bias_source_bg=-0.071,
+               depth_bias_source_fg=0.262, opacity_seen_bg=0.85, opacity_seen_fg=0.55,
+               psnr_seen_bg=20.97, psnr_seen_fg=15.54, displacement_px_seen_bg=10.06,
+               displacement_px_seen_fg=23.09, nv_ari_seen=0.558, nv_ari_unseen=0.395,
+               nv_ari_seen_transported=0.714)
+  for key in drop:
+    del means[key]
+  (results / f"{name}.json").write_text(json.dumps(
+      {"split": split, "step": 50000, "parameters": "average", "scenes": 100, "means": means,
+       "log_density_scale": -3.682,
+       "provenance": {"platform": "cpu", "cpu_model": "Test CPU", "cpu_count": 2}}))
+
+
+def test_depth_placement_reads_each_region(results, monkeypatch):
+  monkeypatch.setattr(room_tables, "ROOM_DEPTH_PLACEMENT", (("seed 9", "placement"),))
+  _write_placement(results, "placement")
+  lines = room_tables.room_depth_placement()
+  assert lines[2] == ("| seed 9 | step 50000, average, 100 scenes | -3.68 | 0.86 / 0.67 | -0.07 / +0.26 | "
+                      "0.85 / 0.55 | 10.1 / 23.1 | 21.0 / 15.5 | 0.558 / 0.395 | 0.714 |")
+  assert "a 2-core Test CPU" in lines[4] and "placement.json" in lines[5]
+
+
+def test_depth_placement_refuses_another_split_and_a_missing_figure(results, monkeypatch):
+  monkeypatch.setattr(room_tables, "ROOM_DEPTH_PLACEMENT", (("seed 9", "placement"),))
+  _write_placement(results, "placement", split="test")
+  with pytest.raises(table_common.TableError, match="placement.json: split 'test'"):
+    room_tables.room_depth_placement()
+  _write_placement(results, "placement", drop=("nv_ari_unseen",))
+  with pytest.raises(table_common.TableError, match="placement.json: no nv_ari_unseen in its means"):
+    room_tables.room_depth_placement()
