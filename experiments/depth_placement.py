@@ -136,12 +136,13 @@ def scene_placement(*, images, masks, depth, cam_to_world, intrinsics, source: i
     ari["nv_ari_seen_transported"].append(region_ari(masks[view], transported, seen))
   out = {}
   if opacity is not None:
-    stacked = np.stack(region_masks["seen"]), np.stack(
-        [masks[v] > 0 for v in novel])  # [n − 1, H, W] each
-    for name, where in (("seen_bg", stacked[0] & ~stacked[1]), ("seen_fg", stacked[0] & stacked[1])):
-      out[f"opacity_{name}"] = float(opacity[1:][where].mean()) if where.any() else float("nan")
-    for name, where in (("bg", masks[source] == 0), ("fg", masks[source] > 0)):
-      out[f"opacity_source_{name}"] = float(opacity[0][where].mean()) if where.any() else float("nan")
+    mean_in = lambda x, where: float(x[where].mean()) if where.any() else float("nan")
+    seen_all = np.stack(region_masks["seen"])  # [n − 1, H, W]
+    fg_all = np.stack([masks[v] > 0 for v in novel])
+    out["opacity_seen_bg"] = mean_in(opacity[1:], seen_all & ~fg_all)
+    out["opacity_seen_fg"] = mean_in(opacity[1:], seen_all & fg_all)
+    out["opacity_source_bg"] = mean_in(opacity[0], masks[source] == 0)
+    out["opacity_source_fg"] = mean_in(opacity[0], masks[source] > 0)
   z_source = camera_z(rendered_distance[0], intrinsics[source])
   source_bias = (z_source - depth[source]) / depth[source]
   fg_source, finite = masks[source] > 0, np.isfinite(depth[source])

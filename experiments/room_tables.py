@@ -139,13 +139,13 @@ def _hosts(records) -> str:
                                  or "a host not recorded" for r in records))
 
 
-def _metrics(record: dict, name: str, keys) -> dict:
-  """The record's metrics, refused in one line when one of `keys` is missing (an evaluation
-  written before the region split, or of a set without depth maps)."""
-  m = record.get("metrics") or {}
+def _metrics(record: dict, name: str, keys, field: str = "metrics") -> dict:
+  """The record's `field` (its metrics), refused in one line when one of `keys` is missing (an
+  evaluation written before the region split, or of a set without depth maps)."""
+  m = record.get(field) or {}
   missing = [k for k in keys if k not in m]
   if missing:
-    raise tc.TableError(f"experiments/results/{name}: no {', '.join(missing)} in its metrics")
+    raise tc.TableError(f"experiments/results/{name}: no {', '.join(missing)} in its {field}")
   return m
 
 
@@ -326,7 +326,8 @@ ROOM_DEPTH_PLACEMENT = (
      "room_depth_placement_chairs_128px_noise50k_loc50k_seed5_amd_step28000"),
     ("the same, s_σ starting at 0 (the paper's value)",
      "room_depth_placement_chairs_128px_noise50k_dens0_seed5_amd_step4000"),
-    ("the same, s_σ starting at 0", "room_depth_placement_chairs_128px_noise50k_dens0_seed5_amd_step20000"),
+    ("the same, s_σ starting at 0",
+     "room_depth_placement_chairs_128px_noise50k_dens0_seed5_amd_step20000"),
     ("the run to step 28 000 with the locality constraint, then without the masking floor",
      "room_depth_placement_chairs_128px_noise50k_nomaskfrom28k_seed5_amd_step32000"),
 )
@@ -335,9 +336,9 @@ ROOM_DEPTH_PLACEMENT = (
 def room_depth_placement() -> list[str]:
   """docs/rooms.md: how opaque the rendering is and where the novel views put what the source view
   sees, against the true depth."""
-  rows = ["| run | checkpoint | s_σ | opacity, source view: background / chairs | depth bias, source view: "
-          "background / chairs | opacity, novel views' seen pixels: background / chairs | "
-          "displacement in the source view (px): background / chairs | PSNR (dB) of the seen "
+  rows = ["| run | checkpoint | s_σ | opacity, source view: background / chairs | depth bias, "
+          "source view: background / chairs | opacity, novel views' seen pixels: background / "
+          "chairs | displacement in the source view (px): background / chairs | PSNR (dB) of the seen "
           "pixels: background / chairs | NV-ARI: seen / unseen pixels | NV-ARI of the seen "
           "pixels, the source view's split carried by the true depth |",
           "|---|---|---|---|---|---|---|---|---|---|"]
@@ -345,17 +346,15 @@ def room_depth_placement() -> list[str]:
   for label, file in ROOM_DEPTH_PLACEMENT:
     name = f"{file}.json"
     d = _val_record(name)
-    m = d.get("means") or {}
     keys = [f"{k}_{r}" for k in ("opacity_source", "depth_bias_source") for r in ("bg", "fg")]
     keys += [f"{k}_{r}" for k in ("opacity", "displacement_px", "psnr")
              for r in ("seen_bg", "seen_fg")]
     keys += ["nv_ari_seen", "nv_ari_unseen", "nv_ari_seen_transported"]
-    missing = [k for k in keys if k not in m]
-    if missing:
-      raise tc.TableError(f"experiments/results/{name}: no {', '.join(missing)} in its means")
+    m = _metrics(d, name, keys, field="means")
     if "log_density_scale" not in d:
       raise tc.TableError(f"experiments/results/{name}: no log_density_scale")
-    pair = lambda key, fmt, bg="_seen_bg", fg="_seen_fg": f"{m[key + bg]:{fmt}} / {m[key + fg]:{fmt}}"
+    def pair(key, fmt, bg="_seen_bg", fg="_seen_fg"):
+      return f"{m[key + bg]:{fmt}} / {m[key + fg]:{fmt}}"
     rows.append(f"| {label} | step {d['step']}, {d['parameters']}, {d['scenes']} scenes | "
                 f"{d['log_density_scale']:.2f} | "
                 f"{pair('opacity_source', '.2f', '_bg', '_fg')} | "
@@ -368,7 +367,8 @@ def room_depth_placement() -> list[str]:
   return rows + ["", "Split: validation, its first scenes (as many as the row says), every "
                  "view; the checkpoint named, its moving average of the parameters or its trained "
                  "ones. s_σ: the learned log scale of the density (docs/method.md §1.4), "
-                 "which the scene recipe starts at −3 and the paper at 0. Opacity: Σ w along a ray (docs/method.md §1.5), the "
+                 "which the scene recipe starts at −3 and the paper at 0. Opacity: Σ w along a "
+                 "ray (docs/method.md §1.5), the "
                  "mean over the region's pixels. Depth bias: the median of (z − z_true) / z_true "
                  "over the region, z the camera depth the model renders (the remainder 1 − Σ w "
                  "of a ray goes to the far plane); > 0: too deep. Seen: the novel views' pixels "

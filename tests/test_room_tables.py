@@ -146,7 +146,8 @@ def test_depth_placement_reads_each_region(results, monkeypatch):
   monkeypatch.setattr(room_tables, "ROOM_DEPTH_PLACEMENT", (("seed 9", "placement"),))
   _write_placement(results, "placement")
   lines = room_tables.room_depth_placement()
-  assert lines[2] == ("| seed 9 | step 50000, average, 100 scenes | -3.68 | 0.86 / 0.67 | -0.07 / +0.26 | "
+  assert lines[2] == ("| seed 9 | step 50000, average, 100 scenes | -3.68 | 0.86 / 0.67 | "
+                      "-0.07 / +0.26 | "
                       "0.85 / 0.55 | 10.1 / 23.1 | 21.0 / 15.5 | 0.558 / 0.395 | 0.714 |")
   assert "a 2-core Test CPU" in lines[4] and "placement.json" in lines[5]
 
@@ -157,5 +158,6 @@ def test_depth_placement_refuses_another_split_and_a_missing_figure(results, mon
   with pytest.raises(table_common.TableError, match="placement.json: split 'test'"):
     room_tables.room_depth_placement()
   _write_placement(results, "placement", drop=("nv_ari_unseen",))
-  with pytest.raises(table_common.TableError, match="placement.json: no nv_ari_unseen in its means"):
+  with pytest.raises(table_common.TableError,
+                     match="placement.json: no nv_ari_unseen in its means"):
     room_tables.room_depth_placement()
