@@ -122,10 +122,10 @@ def scene_placement(*, images, masks, depth, cam_to_world, intrinsics, source: i
     uv_model, ahead = project(model_pts, **src)
     sq.append(np.mean((colour[i] - images[view]) ** 2, -1))
     fg = masks[view] > 0
+    # A model's point behind the source camera lands nowhere near the true one.
+    d = np.where(ahead, np.linalg.norm(uv_model - uv_true, axis=-1), np.inf)
     for name, where in (("seen", seen), ("seen_bg", seen & ~fg), ("seen_fg", seen & fg)):
       region_masks[name].append(where)
-      d = np.linalg.norm(uv_model - uv_true, axis=-1)
-      d = np.where(ahead, d, np.inf)  # a point behind the source camera lands nowhere near
       disp[name].append(d[where])
       zt = depth[view][where]
       bias[name].append((z_model[where] - zt) / zt)
