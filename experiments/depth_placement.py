@@ -56,17 +56,12 @@ REGIONS = ("seen", "seen_bg", "seen_fg")
 
 def project(points: np.ndarray, *, cam_to_world: np.ndarray,
             intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-  """Homogeneous world points [..., 4] (w = 1) → pixel coordinates [..., 2] (centres at integers)
-  and whether each lies in front of the camera."""
-  pose = np.asarray(cam_to_world, np.float64)
-  k = np.asarray(intrinsics, np.float64)
-  cam = (points[..., :3] - points[..., 3:] * pose[:3, 3]) @ pose[:3, :3]  # Rᵀ(p − t)
-  z = cam[..., 2]
-  ahead = z > 1e-6
-  safe_z = np.where(ahead, z, 1.0)
-  u = (k[0, 0] * cam[..., 0] + k[0, 1] * cam[..., 1]) / safe_z + k[0, 2]
-  v = k[1, 1] * cam[..., 1] / safe_z + k[1, 2]
-  return np.stack([u, v], -1), ahead
+  """Homogeneous world points [..., 4] → pixel coordinates [..., 2] (centres at integers) and
+  whether each lies in front of the camera (`regions.project_points`)."""
+  from slotlifter_jax import geometry
+  from slotlifter_jax import regions
+  u, v, z = regions.project_points(points, cam_to_world=cam_to_world, intrinsics=intrinsics)
+  return np.stack([u, v], -1), z > geometry.MIN_DEPTH
 
 
 def nearest(labels: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -317,7 +317,8 @@ def room_slot_routing() -> list[str]:
 
 
 # (label, file): RESULTS/<file>.json from `python experiments/depth_placement.py --workdir=DIR
-# --scenes=100 --out=...` (the run's best checkpoint, moving average).
+# --out=...` (the best checkpoint's moving average on 100 scenes, or with --checkpoint=STEP
+# --params=trained --scenes=30 a step of the run's history; each row names which).
 ROOM_DEPTH_PLACEMENT = (
     ("chairs, 128 px, slot noise to step 50 000 (seed 5, AMD host)",
      "room_depth_placement_chairs_128px_noise50k_seed5_amd_step50000"),
@@ -338,8 +339,8 @@ def room_depth_placement() -> list[str]:
   sees, against the true depth."""
   rows = ["| run | checkpoint | s_σ | opacity, source view: background / chairs | depth bias, "
           "source view: background / chairs | opacity, novel views' seen pixels: background / "
-          "chairs | displacement in the source view (px): background / chairs | PSNR (dB) of the seen "
-          "pixels: background / chairs | NV-ARI: seen / unseen pixels | NV-ARI of the seen "
+          "chairs | displacement in the source view (px): background / chairs | PSNR (dB) of the "
+          "seen pixels: background / chairs | NV-ARI: seen / unseen pixels | NV-ARI of the seen "
           "pixels, the source view's split carried by the true depth |",
           "|---|---|---|---|---|---|---|---|---|---|"]
   names, records = [], []

@@ -57,6 +57,23 @@ def surface_points(*, depth: np.ndarray, cam_to_world: np.ndarray,
   return np.concatenate([world, finite[..., None].astype(np.float64)], axis=-1)
 
 
+def project_points(points: np.ndarray, *, cam_to_world: np.ndarray,
+                   intrinsics: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+  """Homogeneous world points [..., 4] into a camera: pixel coordinates u, v (centres at
+  integers) and camera depth z, each [...]. A point at or behind the camera
+  (z ≤ geometry.MIN_DEPTH) gets finite but meaningless u, v; a point at infinity (w = 0) projects
+  by its direction."""
+  pose = np.asarray(cam_to_world, np.float64)
+  k = np.asarray(intrinsics, np.float64)
+  # Camera coordinates R^T (p - w t), as row vectors.
+  cam = (points[..., :3] - points[..., 3:] * pose[:3, 3]) @ pose[:3, :3]
+  z = cam[..., 2]
+  safe_z = np.where(z > geometry.MIN_DEPTH, z, 1.0)
+  u = (k[0, 0] * cam[..., 0] + k[0, 1] * cam[..., 1]) / safe_z + k[0, 2]
+  v = k[1, 1] * cam[..., 1] / safe_z + k[1, 2]
+  return u, v, z
+
+
 def seen_by_source(*, points: np.ndarray, source_depth: np.ndarray,
                    source_cam_to_world: np.ndarray, source_intrinsics: np.ndarray) -> np.ndarray:
   """Whether one source view sees each point: points [..., 4] homogeneous → [...] bool.
@@ -71,15 +88,9 @@ def seen_by_source(*, points: np.ndarray, source_depth: np.ndarray,
   infinity is seen when one of those pixels shows nothing either.
   """
   height, width = source_depth.shape
-  pose = np.asarray(source_cam_to_world, np.float64)
-  k = np.asarray(source_intrinsics, np.float64)
-  # Camera coordinates R^T (p - w t), as row vectors.
-  cam = (points[..., :3] - points[..., 3:] * pose[:3, 3]) @ pose[:3, :3]
-  z = cam[..., 2]
+  u, v, z = project_points(points, cam_to_world=source_cam_to_world,
+                           intrinsics=source_intrinsics)
   ahead = z > geometry.MIN_DEPTH
-  safe_z = np.where(ahead, z, 1.0)
-  u = (k[0, 0] * cam[..., 0] + k[0, 1] * cam[..., 1]) / safe_z + k[0, 2]
-  v = k[1, 1] * cam[..., 1] / safe_z + k[1, 2]
   inside = (ahead & (u >= -PIXEL_SLACK) & (u <= width - 1 + PIXEL_SLACK) & (v >= -PIXEL_SLACK)
             & (v <= height - 1 + PIXEL_SLACK))
   u0 = np.floor(np.clip(np.where(inside, u, 0.0), 0, width - 1)).astype(np.int64)
